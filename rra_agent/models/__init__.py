@@ -1,0 +1,1 @@
+"""msgspec Structs for every RRA model, their loaders and cross-reference validation."""

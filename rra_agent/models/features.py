@@ -1,0 +1,296 @@
+"""The Feature Model (paper Sec. II, III-D): features, groups, constraints and RRA attributes.
+
+The model is read from UVL (`rra_agent.dsl.uvl`). RRA's additions are plain UVL attributes,
+so any UVL tool can open the file:
+
+- binding time: ``binding 'runtime'`` (default ``'deployment'``; children inherit it);
+- Context Independent Measurement: ``Latency {kind 'cim', value 'High', scale ['Low', 'High']}``
+  (``scale`` orders string values from lowest to highest so MIN/MAX can compare them);
+- Non-Functional Requirement: ``VelocityLimit {kind 'nfr', tag 'max', value 0.5, unit 'm/s',
+  constrains 'MaxVel'}``;
+- Continuous Variability: ``MaxVel {kind 'cv', lower 0.4, upper 0.8, unit 'm/s'}``;
+- ``alias 'CommunicChannel'`` gives a multi-word feature a name usable unquoted in rules.
+
+Attribute values are kept exactly as written (``value``), so exporting back to UVL round-trips;
+the RRA view (`kind`, `lower`, ...) is derived from them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from functools import cached_property
+from typing import Literal
+
+import msgspec
+
+from rra_agent.errors import Location
+from rra_agent.models.base import Model
+
+Binding = Literal["deployment", "runtime"]
+AttributeKind = Literal["plain", "cim", "nfr", "cv"]
+GroupKind = Literal["mandatory", "optional", "alternative", "or", "cardinality"]
+Scalar = str | int | float | bool
+
+#: Attributes whose meaning RRA defines; anything else is carried along untouched.
+RRA_FEATURE_KEYS = frozenset({"binding", "alias", "abstract"})
+
+
+class Span(msgspec.Struct, frozen=True):
+    """Where a model element was written: file, 1-based line and column."""
+
+    file: str
+    line: int
+    col: int
+
+    def location(self) -> Location:
+        return Location(self.file, self.line, self.col)
+
+
+class Attribute(Model, frozen=True):
+    """A UVL attribute. ``value`` is a scalar, a list, a nested mapping, or None (a flag)."""
+
+    name: str
+    value: Scalar | list | dict | None = None
+    span: Span | None = None
+
+    def _get(self, key: str) -> object:
+        return self.value.get(key) if isinstance(self.value, dict) else None
+
+    @property
+    def kind(self) -> AttributeKind:
+        k = self._get("kind")
+        return k if k in ("cim", "nfr", "cv") else "plain"  # type: ignore[return-value]
+
+    @property
+    def unit(self) -> str | None:
+        u = self._get("unit")
+        return u if isinstance(u, str) else None
+
+    @property
+    def tag(self) -> str | None:
+        """NFR tag: ``min``, ``max``, ``avg`` or ``count``."""
+        t = self._get("tag")
+        return t if isinstance(t, str) else None
+
+    @property
+    def lower(self) -> float | None:
+        v = self._get("lower")
+        return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
+
+    @property
+    def upper(self) -> float | None:
+        v = self._get("upper")
+        return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
+
+    @property
+    def scale(self) -> tuple[str, ...] | None:
+        """Ordinal scale (lowest first) for string-valued CIM attributes."""
+        s = self._get("scale")
+        return tuple(str(x) for x in s) if isinstance(s, list) else None
+
+    @property
+    def constrains(self) -> str | None:
+        """For an NFR: the name of the CV attribute it bounds."""
+        c = self._get("constrains")
+        return c if isinstance(c, str) else None
+
+    @property
+    def rra_value(self) -> Scalar | None:
+        """The attribute's value in RRA terms: ``value`` of a kinded attribute, else itself."""
+        if self.kind == "plain":
+            return self.value if isinstance(self.value, Scalar) else None
+        v = self._get("value")
+        return v if isinstance(v, Scalar) else None
+
+    @property
+    def rank(self) -> float | None:
+        """A number to order CIM values by: numbers as they are, strings by their scale."""
+        v = self.rra_value
+        if isinstance(v, bool):
+            return float(v)
+        if isinstance(v, int | float):
+            return float(v)
+        if isinstance(v, str) and self.scale and v in self.scale:
+            return float(self.scale.index(v))
+        return None
+
+
+class Feature(Model, frozen=True):
+    """A feature with its attributes and child groups."""
+
+    name: str
+    attributes: tuple[Attribute, ...] = ()
+    groups: tuple[Group, ...] = ()
+    span: Span | None = None
+
+    def attribute(self, name: str) -> Attribute | None:
+        return next((a for a in self.attributes if a.name == name), None)
+
+    @property
+    def declared_binding(self) -> Binding | None:
+        """The binding written on this feature, if any (see `FeatureModel.binding`)."""
+        a = self.attribute("binding")
+        return a.value if a is not None and a.value in ("deployment", "runtime") else None  # type: ignore[return-value]
+
+    @property
+    def alias(self) -> str | None:
+        a = self.attribute("alias")
+        return a.value if a is not None and isinstance(a.value, str) else None
+
+    @property
+    def abstract(self) -> bool:
+        a = self.attribute("abstract")
+        return a is not None and a.value in (None, True)
+
+    @property
+    def children(self) -> Iterator[Feature]:
+        for g in self.groups:
+            yield from g.children
+
+
+class Group(Model, frozen=True):
+    """A child group. ``cardinality`` uses ``lower``/``upper`` (``upper`` None means ``*``)."""
+
+    kind: GroupKind
+    children: tuple[Feature, ...] = ()
+    lower: int | None = None
+    upper: int | None = None
+    span: Span | None = None
+
+    @property
+    def bounds(self) -> tuple[int, int | None]:
+        """How many children may be selected when the parent is: (min, max or None)."""
+        n = len(self.children)
+        match self.kind:
+            case "mandatory":
+                return n, n
+            case "optional":
+                return 0, n
+            case "alternative":
+                return 1, 1
+            case "or":
+                return 1, n
+            case _:
+                return self.lower or 0, self.upper
+
+
+# Constraint expressions: a tagged union, dispatched with `match`.
+class Ref(Model, frozen=True, tag="ref"):
+    name: str
+    span: Span | None = None
+
+
+class Not(Model, frozen=True, tag="not"):
+    operand: Expr
+
+
+class And(Model, frozen=True, tag="and"):
+    left: Expr
+    right: Expr
+
+
+class Or(Model, frozen=True, tag="or"):
+    left: Expr
+    right: Expr
+
+
+class Implies(Model, frozen=True, tag="implies"):
+    left: Expr
+    right: Expr
+
+
+class Equiv(Model, frozen=True, tag="equiv"):
+    left: Expr
+    right: Expr
+
+
+Expr = Ref | Not | And | Or | Implies | Equiv
+
+
+class Constraint(Model, frozen=True):
+    expr: Expr
+    span: Span | None = None
+
+
+def refs(expr: Expr) -> Iterator[Ref]:
+    """Every feature reference in a constraint expression, left to right."""
+    match expr:
+        case Ref():
+            yield expr
+        case Not(operand=o):
+            yield from refs(o)
+        case And(left=a, right=b) | Or(left=a, right=b) | Implies(left=a, right=b) | Equiv(
+            left=a, right=b
+        ):
+            yield from refs(a)
+            yield from refs(b)
+
+
+class FeatureModel(Model, frozen=True, dict=True):
+    """A whole feature model: root feature, cross-tree constraints, and derived indexes."""
+
+    root: Feature
+    constraints: tuple[Constraint, ...] = ()
+    namespace: str | None = None
+    source: str = "<features>"
+
+    # ---- derived views (computed once) ---------------------------------------------------
+    @cached_property
+    def features(self) -> dict[str, Feature]:
+        """Every feature by name, in depth-first pre-order (the model's canonical order)."""
+        out: dict[str, Feature] = {}
+        stack = [self.root]
+        while stack:
+            f = stack.pop()
+            out[f.name] = f
+            stack.extend(reversed(list(f.children)))
+        return out
+
+    @cached_property
+    def parent(self) -> dict[str, str | None]:
+        out: dict[str, str | None] = {self.root.name: None}
+        for f in self.features.values():
+            for c in f.children:
+                out[c.name] = f.name
+        return out
+
+    @cached_property
+    def group_of(self) -> dict[str, Group]:
+        """The group each non-root feature belongs to."""
+        return {c.name: g for f in self.features.values() for g in f.groups for c in g.children}
+
+    @cached_property
+    def binding(self) -> dict[str, Binding]:
+        """Effective binding time: the declared one, else the parent's, else deployment."""
+        out: dict[str, Binding] = {}
+        for name, f in self.features.items():  # pre-order: parents first
+            p = self.parent[name]
+            out[name] = f.declared_binding or (out[p] if p is not None else "deployment")
+        return out
+
+    @cached_property
+    def aliases(self) -> dict[str, str]:
+        """alias -> feature name."""
+        return {f.alias: n for n, f in self.features.items() if f.alias}
+
+    def resolve_name(self, name: str) -> str | None:
+        """A feature's name from its name or alias, or None if there is no such feature."""
+        if name in self.features:
+            return name
+        return self.aliases.get(name)
+
+    @cached_property
+    def attributes(self) -> dict[str, tuple[str, Attribute]]:
+        """Every kinded (cim/nfr/cv) attribute by name -> (owning feature, attribute)."""
+        return {
+            a.name: (fname, a)
+            for fname, f in self.features.items()
+            for a in f.attributes
+            if a.kind != "plain"
+        }
+
+    def runtime_features(self) -> list[str]:
+        return [n for n, b in self.binding.items() if b == "runtime"]
+
+    def deployment_features(self) -> list[str]:
+        return [n for n, b in self.binding.items() if b == "deployment"]

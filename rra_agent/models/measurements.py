@@ -1,0 +1,92 @@
+"""Data Types and Context Dependent Measurements Model (paper Sec. III-C, Fig. 4, Table I).
+
+Data types describe what component ports carry (msgpack maps on the bus) and the functions
+defined on them. A measurement names its source interface(s) (``component.port``), the type it
+produces, and an optional function turning the source data into the measurement. A function
+is a key of the source type's ``functions`` (the paper: functions belong to data types) or a
+dotted Python path ``pkg.module.func``.
+
+Multi-input measurements (the paper's first future-work item) list several ``sources`` and a
+synchronisation policy: ``latest`` (recompute on every input from the latest value of each)
+or ``window`` (recompute only when every input has a sample within ``window_ms`` of the newest).
+The function then receives one argument per source, in order.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from rra_agent.models.base import Model
+from rra_agent.models.system import parse_endpoint
+
+PRIMITIVE_TYPES = frozenset({"float", "int", "bool", "str", "bytes"})
+MeasurementType = Literal["float", "int", "bool", "str"]
+
+
+class DataType(Model, frozen=True):
+    """A composite data type: named fields of primitive, ``list[T]`` or other composite types."""
+
+    name: str
+    fields: dict[str, str] = {}
+    #: Function name -> dotted Python path of a callable taking one value of this type.
+    functions: dict[str, str] = {}
+    description: str | None = None
+
+
+class Sync(Model, frozen=True):
+    policy: Literal["latest", "window"] = "latest"
+    window_ms: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.policy == "window" and (self.window_ms is None or self.window_ms <= 0):
+            raise ValueError("the 'window' policy needs a positive window_ms")
+        if self.policy == "latest" and self.window_ms is not None:
+            raise ValueError("window_ms only applies to the 'window' policy")
+
+
+class Measurement(Model, frozen=True):
+    name: str
+    type: MeasurementType
+    #: One source interface ``component.port`` ...
+    source: str | None = None
+    #: ... or several, for a multi-input measurement.
+    sources: list[str] = []
+    #: Field of the source sample to take when there is no function (e.g. ``level``).
+    field: str | None = None
+    function: str | None = None
+    sync: Sync = Sync()
+    #: A measurement older than this is stale (rule conditions reading it are undefined).
+    max_age_ms: float | None = None
+    unit: str | None = None
+    description: str | None = None
+
+    def __post_init__(self) -> None:
+        if (self.source is None) == (not self.sources):
+            raise ValueError("a measurement needs exactly one of 'source' and 'sources'")
+        for s in self.inputs:
+            parse_endpoint(s)
+        if len(self.inputs) > 1 and self.function is None:
+            raise ValueError("a multi-input measurement needs a function")
+        if self.field is not None and self.function is not None:
+            raise ValueError("'field' and 'function' are exclusive")
+
+    @property
+    def inputs(self) -> list[str]:
+        return [self.source] if self.source is not None else list(self.sources)
+
+
+class MeasurementsModel(Model, frozen=True):
+    data_types: list[DataType] = []
+    measurements: list[Measurement] = []
+
+    def __post_init__(self) -> None:
+        for what, names in (
+            ("data type", [t.name for t in self.data_types]),
+            ("measurement", [m.name for m in self.measurements]),
+        ):
+            dup = sorted({n for n in names if names.count(n) > 1})
+            if dup:
+                raise ValueError(f"duplicate {what} name(s) {', '.join(dup)}")
+
+    def data_type(self, name: str) -> DataType | None:
+        return next((t for t in self.data_types if t.name == name), None)

@@ -1,0 +1,113 @@
+"""Deployment-time and Run-time Resolution Models (paper Sec. II and III-E).
+
+Both map features to the transformations applied to a system model when the feature is
+selected, in one transformation language (the paper: the run-time meta-model extends the
+deployment-time one). The run-time model adds parameters set from a Continuous Variability
+attribute (``from_attribute``) and the replacement strategy used when a component is swapped.
+
+In YAML each transformation is a one-key mapping::
+
+    Manipulation:
+      - include_component: arm_controller
+      - set_implementation: {component: local_navigation, implementation: dwa}
+      - set_parameter: {component: local_navigation, parameter: max_vel, from_attribute: MaxVel}
+      - add_connection: {from: radio_driver_a.rx, to: radio_switch.radio_in}
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+from rra_agent.models.base import Model
+from rra_agent.models.system import ParamValue, parse_endpoint
+
+Strategy = Literal["stop-then-start", "start-then-stop", "standby"]
+
+
+class SetImplementation(Model, frozen=True):
+    component: str
+    #: A key of the component's ``implementations``.
+    implementation: str
+
+
+class SetParameter(Model, frozen=True):
+    component: str
+    parameter: str
+    value: ParamValue | None = None
+    #: Name of a Continuous Variability attribute whose current value is used (run-time only).
+    from_attribute: str | None = None
+
+    def __post_init__(self) -> None:
+        if (self.value is None) == (self.from_attribute is None):
+            raise ValueError("set_parameter needs exactly one of 'value' and 'from_attribute'")
+
+
+class ConnectionRef(Model, frozen=True):
+    source: str = msgspec.field(name="from")
+    target: str = msgspec.field(name="to")
+
+    def __post_init__(self) -> None:
+        parse_endpoint(self.source)
+        parse_endpoint(self.target)
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.source, self.target)
+
+
+class Transformation(Model, frozen=True):
+    """Exactly one of the fields is set."""
+
+    include_component: str | None = None
+    remove_component: str | None = None
+    set_implementation: SetImplementation | None = None
+    set_parameter: SetParameter | None = None
+    add_connection: ConnectionRef | None = None
+    remove_connection: ConnectionRef | None = None
+
+    def __post_init__(self) -> None:
+        n = sum(getattr(self, f) is not None for f in self.__struct_fields__)
+        if n != 1:
+            raise ValueError(
+                "a transformation has exactly one of: " + ", ".join(self.__struct_fields__)
+            )
+
+    @property
+    def op(self) -> str:
+        """The name of the one field that is set."""
+        return next(f for f in self.__struct_fields__ if getattr(self, f) is not None)
+
+
+class ResolutionModel(Model, frozen=True):
+    """Feature name -> transformations, applied in the feature model's order when selected."""
+
+    features: dict[str, list[Transformation]] = {}
+
+
+class DeploymentResolutionModel(ResolutionModel, frozen=True):
+    pass
+
+
+class StateTransfer(Model, frozen=True):
+    """Copy the exported state of ``from`` into ``to`` when one replaces the other."""
+
+    source: str = msgspec.field(name="from")
+    target: str = msgspec.field(name="to")
+
+
+class Replacement(Model, frozen=True):
+    """How components are replaced at run time (the paper's second future-work item)."""
+
+    default: Strategy = "stop-then-start"
+    #: Per-component override, keyed by the component being started.
+    components: dict[str, Strategy] = {}
+    state_transfer: list[StateTransfer] = []
+
+    def strategy_for(self, component: str) -> Strategy:
+        return self.components.get(component, self.default)
+
+
+class RuntimeResolutionModel(ResolutionModel, frozen=True):
+    replacement: Replacement = Replacement()

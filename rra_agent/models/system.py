@@ -1,0 +1,166 @@
+"""The Template System Model (paper Sec. II): components, ports, parameters, connections, hosts.
+
+The same Structs describe the Deployment-time and Run-time Configured System Models: those are
+system models with their deployment-time (resp. all) variation points resolved.
+
+Variation points of the template (paper Sec. II): (a) optional components, (b) alternative
+implementations, (c) optional connections, (d) configurable parameters. A component or
+connection with ``optional: true`` is absent unless a resolution transformation includes it;
+its ``binding`` says which resolution model may do so. Run-time-bound optional parts stay in
+the Deployment-time Configured System Model as run-time variation points.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+from rra_agent.models.base import Model
+
+Binding = Literal["deployment", "runtime"]
+ParamType = Literal["float", "int", "bool", "str", "list"]
+ParamValue = bool | int | float | str | list
+Direction = Literal["publish", "subscribe"]
+
+
+class Command(Model, frozen=True):
+    """An external program run as a node (any language speaking the wire protocol)."""
+
+    command: list[str]
+    env: dict[str, str] = {}
+    cwd: str | None = None
+
+
+#: A dotted Python path of a Node class (``pkg.module.ClassName``) or an external command.
+Implementation = str | Command
+
+
+class Parameter(Model, frozen=True):
+    """A typed, run-time settable component parameter."""
+
+    type: ParamType
+    value: ParamValue
+    unit: str | None = None
+    description: str | None = None
+    min: float | None = None
+    max: float | None = None
+
+    def __post_init__(self) -> None:
+        if not value_has_type(self.value, self.type):
+            raise ValueError(f"value {self.value!r} is not of type {self.type}")
+        if self.min is not None and self.max is not None and self.min > self.max:
+            raise ValueError(f"min {self.min} is greater than max {self.max}")
+
+
+def value_has_type(value: object, type_: ParamType) -> bool:
+    """Whether a parameter value fits a declared type (ints are accepted as floats)."""
+    match type_:
+        case "bool":
+            return isinstance(value, bool)
+        case "int":
+            return isinstance(value, int) and not isinstance(value, bool)
+        case "float":
+            return isinstance(value, int | float) and not isinstance(value, bool)
+        case "str":
+            return isinstance(value, str)
+        case "list":
+            return isinstance(value, list)
+    return False
+
+
+class Port(Model, frozen=True):
+    """A data port. A publisher's samples go to ``rra/<system>/data/<topic>``; ``topic``
+    defaults to ``<component>/<port>``. A subscriber listens on the topics of the publishers
+    connected to it."""
+
+    name: str
+    direction: Direction
+    type: str
+    topic: str | None = None
+
+
+class Component(Model, frozen=True):
+    name: str
+    implementation: Implementation
+    #: Named alternative implementations, selectable by a ``set_implementation`` transformation.
+    implementations: dict[str, Implementation] = {}
+    parameters: dict[str, Parameter] = {}
+    ports: list[Port] = []
+    optional: bool = False
+    binding: Binding = "deployment"
+    host: str | None = None
+    description: str | None = None
+
+    def __post_init__(self) -> None:
+        names = [p.name for p in self.ports]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"duplicate port name(s) {', '.join(dup)}")
+        if self.binding == "runtime" and not self.optional:
+            raise ValueError("a run-time-bound component must be optional")
+
+    def port(self, name: str) -> Port | None:
+        return next((p for p in self.ports if p.name == name), None)
+
+
+class Endpoint(Model, frozen=True):
+    """``component.port`` parsed."""
+
+    component: str
+    port: str
+
+    def __str__(self) -> str:
+        return f"{self.component}.{self.port}"
+
+
+def parse_endpoint(text: str) -> Endpoint:
+    comp, sep, port = text.partition(".")
+    if not sep or not comp or not port:
+        raise ValueError(f"expected 'component.port', got {text!r}")
+    return Endpoint(component=comp, port=port)
+
+
+class Connection(Model, frozen=True):
+    """A publisher port feeding a subscriber port (``from``/``to`` as ``component.port``)."""
+
+    source: str = msgspec.field(name="from")
+    target: str = msgspec.field(name="to")
+    optional: bool = False
+    binding: Binding = "deployment"
+
+    def __post_init__(self) -> None:
+        parse_endpoint(self.source)
+        parse_endpoint(self.target)
+        if self.binding == "runtime" and not self.optional:
+            raise ValueError("a run-time-bound connection must be optional")
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.source, self.target)
+
+
+class Host(Model, frozen=True):
+    name: str
+    #: Zenoh endpoint of the host agent, e.g. ``tcp/127.0.0.1:7448``; None = this machine.
+    endpoint: str | None = None
+    description: str | None = None
+
+
+class SystemModel(Model, frozen=True):
+    """A Template (or Configured) System Model."""
+
+    system: str
+    components: list[Component] = []
+    connections: list[Connection] = []
+    hosts: list[Host] = []
+    description: str | None = None
+
+    def __post_init__(self) -> None:
+        names = [c.name for c in self.components]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"duplicate component name(s) {', '.join(dup)}")
+
+    def component(self, name: str) -> Component | None:
+        return next((c for c in self.components if c.name == name), None)

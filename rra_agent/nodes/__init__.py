@@ -1,0 +1,1 @@
+"""Component implementations shipped with rra-agent (generic nodes and the example systems')."""

@@ -1,0 +1,45 @@
+"""Generic nodes: building blocks for tests, benchmarks and quick prototypes.
+
+- `Relay`: forwards each input sample from port ``in`` to port ``out``, adding the ``offset``
+  parameter to the field ``value`` if present; keeps a count it can hand over as state.
+- `Ticker`: publishes ``{"seq": n, "value": param value}`` on ``out`` at ``rate_hz``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rra_agent.bus.node import Node
+
+
+class Relay(Node):
+    def on_start(self) -> None:
+        self.count = 0
+
+    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
+        self.count += 1
+        out = dict(data)
+        offset = self.ctx.param("offset", 0.0)
+        if isinstance(out.get("value"), int | float) and not isinstance(out.get("value"), bool):
+            out["value"] = out["value"] + offset
+        out["relay"] = self.ctx.name
+        out["count"] = self.count
+        self.ctx.publish("out", out)
+
+    def export_state(self) -> Any:
+        return {"count": self.count}
+
+    def import_state(self, state: Any) -> None:
+        if isinstance(state, dict) and isinstance(state.get("count"), int):
+            self.count = state["count"]
+
+
+class Ticker(Node):
+    rate_hz = 10.0
+
+    def on_start(self) -> None:
+        self.seq = 0
+
+    def step(self, now: float) -> None:
+        self.seq += 1
+        self.ctx.publish("out", {"seq": self.seq, "value": self.ctx.param("value", 0.0)})

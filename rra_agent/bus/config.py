@@ -13,6 +13,7 @@ flags, in that order, and passed to child processes as JSON in ``RRA_BUS_CONFIG`
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 from pathlib import Path
@@ -103,3 +104,23 @@ class BusConfig(Model, frozen=True):
             if v is not None
         }
         return msgspec.structs.replace(self, **changes)
+
+
+def add_bus_arguments(parser) -> None:  # argparse.ArgumentParser
+    """The bus flags every rra process accepts."""
+    g = parser.add_argument_group("bus")
+    g.add_argument("--bus-config", metavar="FILE", help="YAML/JSON BusConfig file")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/10.0.0.2:7447")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT")
+    g.add_argument("--multicast", action=argparse.BooleanOptionalAction, default=None)
+    g.add_argument("--lease-ms", type=int, metavar="MS", help="liveliness/transport lease")
+
+
+def bus_from_args(args) -> BusConfig:  # argparse.Namespace
+    """Defaults, then $RRA_BUS_CONFIG, then --bus-config FILE, then the flags."""
+    cfg = BusConfig.from_env()
+    if getattr(args, "bus_config", None):
+        cfg = BusConfig.load(args.bus_config)
+    return cfg.override(
+        listen=args.listen, connect=args.connect, multicast=args.multicast, lease_ms=args.lease_ms
+    )

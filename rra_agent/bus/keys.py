@@ -9,6 +9,7 @@
     rra/<system>/node/<node>/ctl           node control (queryable)
     rra/<system>/alive/<host>/<node>       liveliness tokens
     rra/<system>/host/<host>/ctl           host agent control (queryable)
+    rra/<system>/hostagent/<host>          host agent liveliness token
     rra/<system>/engine/<name>/ctl         engine control/status (queryable)
     rra/<system>/inject/**                 scenario injections (faults, context changes)
 """
@@ -76,6 +77,10 @@ class Keys:
     @property
     def alive_all(self) -> str:
         return f"{self.prefix}/alive/**"
+
+    def host_alive(self, host: str) -> str:
+        """The host agent's own liveliness token."""
+        return f"{self.prefix}/hostagent/{check_chunk(host, 'host')}"
 
     def host_ctl(self, host: str) -> str:
         return f"{self.prefix}/host/{check_chunk(host, 'host')}/ctl"

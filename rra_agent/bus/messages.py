@@ -210,10 +210,26 @@ class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
 
 # ---- host agent control -----------------------------------------------------------------
 class StartNode(Msg, tag="start_node"):
+    """Supervise and start a node (replies once spawned; RUNNING follows as a NodeState)."""
+
+    spec: NodeSpec
+
+
+class StopNode(Msg, tag="stop_node"):
+    """Stop a node (SIGINT, then SIGTERM, then SIGKILL) and stop supervising it."""
+
+    node: str
+
+
+class UpdateSpec(Msg, tag="update_spec"):
+    """The node's params/ports changed at run time: restart it with these from now on."""
+
     spec: NodeSpec
 
 
 class SignalNode(Msg, tag="signal_node"):
+    """Send a signal to a node process (fault injection: SIGKILL, SIGSTOP, SIGCONT)."""
+
     node: str
     signal: int
 
@@ -222,7 +238,7 @@ class ListNodes(Msg, tag="list_nodes"):
     pass
 
 
-HostRequest = StartNode | SignalNode | ListNodes
+HostRequest = StartNode | StopNode | UpdateSpec | SignalNode | ListNodes
 
 
 # ---- engine control ---------------------------------------------------------------------

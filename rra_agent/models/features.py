@@ -219,8 +219,11 @@ def refs(expr: Expr) -> Iterator[Ref]:
             yield expr
         case Not(operand=o):
             yield from refs(o)
-        case And(left=a, right=b) | Or(left=a, right=b) | Implies(left=a, right=b) | Equiv(
-            left=a, right=b
+        case (
+            And(left=a, right=b)
+            | Or(left=a, right=b)
+            | Implies(left=a, right=b)
+            | Equiv(left=a, right=b)
         ):
             yield from refs(a)
             yield from refs(b)

@@ -1,0 +1,282 @@
+"""The host agent (``rra agent``): starts, supervises and stops the node processes of one host.
+
+One per machine. It answers `HostRequest`s on ``rra/<system>/host/<host>/ctl``, runs a
+`Supervisor` over its children (restart policy, backoff, SIGINT -> SIGTERM -> SIGKILL), follows
+their liveliness tokens on ``rra/<system>/alive/<host>/*`` (ready handshake; a frozen process
+loses its token at lease expiry and is killed and restarted), and publishes every state
+transition as a `NodeState` on ``rra/<system>/events``.
+
+It only starts implementations the system model declares: ``allowed`` is the set of
+implementations of the package it serves (None accepts any, for tests and tools).
+
+Threading: Zenoh callbacks only enqueue; the main thread owns the supervisor and spawns every
+process (the children's parent-death signal is tied to the spawning thread).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import select
+import signal
+import socket
+import time
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import zenoh
+
+from rra_agent.agents.localhost import LocalHost
+from rra_agent.agents.supervisor import RestartPolicy, StopPolicy, Supervisor, Transition
+from rra_agent.bus import messages as m
+from rra_agent.bus.config import BusConfig
+from rra_agent.bus.keys import Keys
+from rra_agent.bus.runtime import open_session
+
+TICK = 0.02
+_REQ = m.Codec[m.HostRequest](m.HostRequest)
+_EVT = m.Codec[m.EventMessage](m.EventMessage)
+_REPLY = m.Codec[m.Reply](m.Reply)
+
+
+def implementation_id(impl: m.NodeSpec | Any) -> str:
+    i = impl.implementation if isinstance(impl, m.NodeSpec) else impl
+    return i if isinstance(i, str) else " ".join(i.command)
+
+
+@dataclass
+class _Request:
+    query: zenoh.Query | None
+    request: m.HostRequest | None
+    error: str | None = None
+
+
+class HostAgent:
+    def __init__(
+        self,
+        system: str,
+        host: str,
+        bus: BusConfig,
+        log_dir: str | Path,
+        *,
+        hub: bool = False,
+        allowed: Collection[str] | None = None,
+        restart: RestartPolicy | None = None,
+        stop: StopPolicy | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.keys = Keys(system)
+        self.host = host
+        #: Children connect with ``bus``; the agent itself listens on the hub endpoint if ``hub``.
+        self.bus = bus
+        self.session_bus = bus.as_hub() if hub else bus
+        self.local = LocalHost(host, bus, log_dir)
+        self.allowed = frozenset(allowed) if allowed is not None else None
+        self.clock = clock
+        self.supervisor = Supervisor(restart=restart, stop=stop, listener=self._on_transition)
+        self.inbox: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self.dropped = 0
+        self._publisher: zenoh.Publisher | None = None
+        self._rsock, self._wsock = socket.socketpair()
+        self._rsock.setblocking(False)
+        self._wsock.setblocking(False)
+        self._stop = False
+        self.session: zenoh.Session | None = None
+        self._entities: list[Any] = []
+
+    # ---- plumbing ----------------------------------------------------------------------
+    def wake(self) -> None:
+        with contextlib.suppress(BlockingIOError, OSError):
+            self._wsock.send(b"\0")
+
+    def post(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the main thread (from any thread, or a signal handler)."""
+        self.inbox.put(fn)
+        self.wake()
+
+    def request_stop(self, *_: Any) -> None:
+        self._stop = True
+        self.wake()
+
+    def _on_transition(self, t: Transition) -> None:
+        p = self.supervisor.procs.get(t.node)
+        msg = m.NodeState(
+            stamp=time.time(),
+            node=t.node,
+            host=t.host,
+            state=t.state.value,  # type: ignore[arg-type]
+            previous=t.previous.value,  # type: ignore[arg-type]
+            pid=t.pid,
+            implementation=implementation_id(p.spec) if p else "",
+            active=p.spec.active if p else True,
+            restarts=t.restarts,
+            reason=t.reason,
+        )
+        if self._publisher is not None:
+            self._publisher.put(_EVT.encode(msg))
+
+    # ---- Zenoh callbacks (enqueue only) -------------------------------------------------
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = query.payload
+        try:
+            req: m.HostRequest | None = _REQ.decode(payload.to_bytes() if payload else b"")
+            err = None
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            req, err = None, f"malformed request: {e}"
+        item = _Request(query, req, err)
+        self.post(lambda: self._serve(item))
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        parsed = self.keys.parse_alive(str(sample.key_expr))
+        if parsed is None or parsed[0] != self.host:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        self.post(lambda: self.supervisor.on_alive(parsed[1], alive, self.clock()))
+
+    # ---- requests (main thread) ---------------------------------------------------------
+    def _serve(self, item: _Request) -> None:
+        if item.request is None:
+            self.dropped += 1
+            reply: m.Reply = m.Err(message=item.error or "malformed", code="malformed")
+        else:
+            try:
+                reply = self.handle(item.request)
+            except Exception as e:  # a bad request must never take the agent down
+                reply = m.Err(message=f"{type(e).__name__}: {e}", code="error")
+        if item.query is not None:
+            item.query.reply(item.query.key_expr, _REPLY.encode(reply))
+            item.query.drop()
+            item.query = None
+
+    def handle(self, req: m.HostRequest) -> m.Reply:
+        now = self.clock()
+        sup = self.supervisor
+        match req:
+            case m.StartNode(spec=spec):
+                impl = implementation_id(spec)
+                if self.allowed is not None and impl not in self.allowed:
+                    return m.Err(message=f"implementation {impl!r} is not declared", code="denied")
+                if spec.name in sup.procs:
+                    p = sup.procs[spec.name]
+                    if p.state.value in ("STARTING", "RUNNING", "STOPPING"):
+                        return m.Err(message=f"node {spec.name} is {p.state}", code="busy")
+                    sup.remove(spec.name)
+                sup.add(spec, self.local)
+                sup.start(spec.name, now)
+                p = sup.procs[spec.name]
+                return m.Ok(result={"pid": p.pid, "state": p.state.value})
+            case m.StopNode(node=name):
+                if name not in sup.procs:
+                    return m.Err(message=f"no node {name!r} on host {self.host}", code="unknown")
+                sup.stop(name, now)
+                return m.Ok(result={"state": sup.state(name).value})
+            case m.UpdateSpec(spec=spec):
+                if spec.name not in sup.procs:
+                    return m.Err(message=f"no node {spec.name!r} on {self.host}", code="unknown")
+                sup.replace_spec(spec.name, spec)
+                return m.Ok()
+            case m.SignalNode(node=name, signal=sig):
+                p = sup.procs.get(name)
+                if p is None or p.pid is None:
+                    return m.Err(message=f"no running node {name!r}", code="unknown")
+                self.local.signal(p.pid, sig)
+                return m.Ok(result={"pid": p.pid})
+            case m.ListNodes():
+                return m.Ok(result=[msgspec.to_builtins(s) for s in self.node_states()])
+        return m.Err(message=f"unsupported request {type(req).__name__}", code="unsupported")
+
+    def node_states(self) -> list[m.NodeState]:
+        now = time.time()
+        return [
+            m.NodeState(
+                stamp=now,
+                node=name,
+                host=self.host,
+                state=p.state.value,  # type: ignore[arg-type]
+                pid=p.pid,
+                implementation=implementation_id(p.spec),
+                active=p.spec.active,
+                restarts=p.restarts,
+            )
+            for name, p in self.supervisor.procs.items()
+        ]
+
+    # ---- main loop ---------------------------------------------------------------------
+    def run(self, *, install_signals: bool = True, on_ready: Callable[[], None] | None = None):
+        if install_signals:
+            signal.signal(signal.SIGINT, self.request_stop)
+            signal.signal(signal.SIGTERM, self.request_stop)
+        self.session = session = open_session(self.session_bus)
+        try:
+            self._publisher = session.declare_publisher(
+                self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            # Keep every declared entity referenced: a dropped one is undeclared.
+            self._entities = [
+                session.liveliness().declare_subscriber(
+                    f"{self.keys.prefix}/alive/{self.host}/*", self._on_alive, history=True
+                ),
+                session.declare_queryable(self.keys.host_ctl(self.host), self._on_query),
+                session.liveliness().declare_token(self.keys.host_alive(self.host)),
+            ]
+            if on_ready is not None:
+                on_ready()
+            while not self._stop:
+                self._cycle(TICK)
+            self._shutdown()
+        finally:
+            self._publisher = None
+            self.local.kill_all()
+            session.close()
+
+    def _cycle(self, timeout: float) -> None:
+        ready, _, _ = select.select([self._rsock], [], [], timeout)
+        if ready:
+            with contextlib.suppress(BlockingIOError, OSError):
+                while self._rsock.recv(256):
+                    pass
+        while True:
+            try:
+                fn = self.inbox.get_nowait()
+            except queue.Empty:
+                break
+            fn()
+        self.supervisor.tick(self.clock())
+        self.local.forget_exited(keep={p.pid for p in self.supervisor.procs.values() if p.pid})
+
+    def _shutdown(self) -> None:
+        """Stop every node with the escalation policy; wait until all have exited."""
+        sup = self.supervisor
+        sup.stop_all(self.clock())
+        pol = sup.stop_policy
+        deadline = self.clock() + pol.sigint_timeout + pol.sigterm_timeout + 2.0
+        while not sup.all_stopped() and self.clock() < deadline:
+            self._cycle(TICK)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rra_agent.agents.host`` / ``rra agent``: serve one host until signalled."""
+    import argparse
+
+    from rra_agent.bus.config import add_bus_arguments, bus_from_args
+
+    parser = argparse.ArgumentParser(prog="rra agent", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--system", required=True, help="system name (key-expression prefix)")
+    parser.add_argument("--host", required=True, help="this host's name in the system model")
+    parser.add_argument("--log-dir", default="rra-logs", help="node logs go here")
+    parser.add_argument(
+        "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
+    )
+    add_bus_arguments(parser)
+    args = parser.parse_args(argv)
+    HostAgent(args.system, args.host, bus_from_args(args), args.log_dir, hub=args.hub).run()
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())

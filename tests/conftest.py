@@ -1,0 +1,98 @@
+"""Shared fixtures: free loopback ports, a hub session, real processes that never outlive a test."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def pid_alive(pid: int) -> bool:
+    """True if ``pid`` exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return False
+
+
+class Procs:
+    """Processes a test starts; all are killed at teardown, and none may survive it."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.started: list[subprocess.Popen[bytes]] = []
+        self.watched: set[int] = set()
+
+    def spawn(self, args: list[str], env: dict[str, str] | None = None, name: str = "proc"):
+        log = (self.tmp / f"{name}.log").open("ab")
+        proc = subprocess.Popen(
+            args,
+            env={**os.environ, "RERUN_ANALYTICS": "0", **(env or {})},
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            cwd=ROOT,
+        )
+        log.close()
+        self.started.append(proc)
+        return proc
+
+    def python(self, module: str, *args: str, name: str = "proc", env=None):
+        return self.spawn([sys.executable, "-m", module, *args], env=env, name=name)
+
+    def watch(self, pid: int | None) -> None:
+        """Also check at teardown that this (grand)child ``pid`` is gone."""
+        if pid:
+            self.watched.add(pid)
+
+    def log(self, name: str) -> str:
+        p = self.tmp / f"{name}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def teardown(self) -> list[int]:
+        for p in self.started:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in self.started:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        return [pid for pid in self.watched if pid_alive(pid)]
+
+
+@pytest.fixture
+def procs(tmp_path: Path) -> Iterator[Procs]:
+    p = Procs(tmp_path)
+    yield p
+    survivors = p.teardown()
+    assert not survivors, f"processes outlived the test: {survivors}"
+
+
+@pytest.fixture
+def hub_port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def bus(hub_port: int):
+    """A BusConfig connecting to this test's hub endpoint on loopback, multicast off."""
+    from rra_agent.bus.config import BusConfig
+
+    return BusConfig(connect=[f"tcp/127.0.0.1:{hub_port}"], multicast=False, lease_ms=500)

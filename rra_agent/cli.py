@@ -1,0 +1,206 @@
+"""The ``rra`` command line (also ``python -m rra_agent``).
+
+Each subcommand is a `Command` in `COMMANDS`: a help text, a function adding its arguments
+and a handler returning the exit status. Every `RraError` ends the command with its message
+on stderr and status 1 (no traceback); Ctrl-C ends it quietly with status 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import msgspec
+import yaml
+
+from rra_agent import __version__
+from rra_agent.errors import LocatedError, RraError
+from rra_agent.models.loader import (
+    SystemPackage,
+    error_line,
+    flatten_errors,
+    load_package,
+    package_root,
+)
+from rra_agent.models.system import SystemModel
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: ``configure`` adds its arguments, ``run`` returns the exit status.
+
+    A new subcommand is one more entry in `COMMANDS`; its handler may live in another module
+    (``run=lazy("rra_agent.agents.up:run")``).
+    """
+
+    help: str
+    configure: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+def lazy(target: str) -> Callable[[argparse.Namespace], int]:
+    """A handler ``"package.module:function"`` imported only when its command runs, so that
+    ``rra validate`` does not pay for zenoh, mujoco or rerun."""
+    module, _, name = target.partition(":")
+
+    def run(args: argparse.Namespace) -> int:
+        return getattr(importlib.import_module(module), name)(args)
+
+    return run
+
+
+# ---- rra validate ------------------------------------------------------------------------
+def _configure_validate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("package", metavar="PKG", help="system package folder (or its rra.yaml)")
+
+
+def _run_validate(args: argparse.Namespace) -> int:
+    """Print every problem of a package as ``file:line:col: message``; 1 if there is any."""
+    from rra_agent.models.validate import validate_package
+
+    package_root(args.package)  # a missing folder is a plain error, not a model problem
+    try:
+        pkg = load_package(args.package, validate=False)
+    except RraError as e:
+        errors = flatten_errors(e)
+    else:
+        errors = list(validate_package(pkg))
+    for err in errors:
+        print(error_line(err))
+    if errors:
+        print(f"{args.package}: {len(errors)} error(s)", file=sys.stderr)
+        return 1
+    print(f"{args.package}: ok ({_summary(pkg)})")
+    return 0
+
+
+def _summary(pkg: SystemPackage) -> str:
+    fm, system, meas = pkg.features, pkg.system, pkg.measurements
+    parts = [
+        _n(len(fm.features), "feature") + f" ({len(fm.runtime_features())} run-time)",
+        _n(len(system.components), "component"),
+        _n(len(system.connections), "connection"),
+        _n(len(meas.data_types), "data type"),
+        _n(len(meas.measurements), "measurement"),
+    ]
+    if pkg.adaptation is not None:
+        rules = _count_rules(pkg.adaptation)
+        parts.append(_n(rules, "rule") if rules is not None else "adaptation rules")
+    return ", ".join(parts)
+
+
+def _count_rules(adaptation: object) -> int | None:
+    rules = getattr(adaptation, "rules", None)
+    if callable(rules):
+        return sum(1 for _ in rules())
+    return len(rules) if isinstance(rules, Sequence) else None
+
+
+def _n(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+# ---- rra resolve -------------------------------------------------------------------------
+def _configure_resolve(p: argparse.ArgumentParser) -> None:
+    p.add_argument("package", metavar="PKG", help="system package folder (or its rra.yaml)")
+    p.add_argument(
+        "--select",
+        "-s",
+        action="append",
+        default=[],
+        metavar="F1,F2",
+        help="deployment-time features to select (default: the manifest's default_selection)",
+    )
+    p.add_argument("--format", "-f", choices=("yaml", "json"), default="yaml")
+    p.add_argument("--output", "-o", metavar="FILE", help="write to FILE instead of stdout")
+
+
+def _run_resolve(args: argparse.Namespace) -> int:
+    """Print the Deployment-time Configured System Model for a selection."""
+    from rra_agent.core.features import complete_deployment
+    from rra_agent.core.resolution import resolve_deployment
+
+    pkg = load_package(args.package)
+    names = split_selection(args.select) or list(pkg.manifest.default_selection)
+    selection = complete_deployment(pkg.features, names)
+    configured = resolve_deployment(pkg.system, pkg.deployment, pkg.features, selection)
+    ordered = [f for f in pkg.features.features if f in selection]
+    text = render_system(configured, args.format, f"selection: {', '.join(ordered)}")
+    if args.output:
+        Path(args.output).write_text(text, encoding="utf-8")
+        print(f"wrote {args.output}", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def split_selection(values: Sequence[str]) -> list[str]:
+    """``["A,B", "C"]`` -> ``["A", "B", "C"]`` (blank items dropped)."""
+    return [name.strip() for v in values for name in v.split(",") if name.strip()]
+
+
+def render_system(system: SystemModel, fmt: str, note: str | None = None) -> str:
+    """A system model as YAML (with ``note`` as a leading comment) or as JSON."""
+    if fmt == "json":
+        return msgspec.json.format(msgspec.json.encode(system), indent=2).decode() + "\n"
+    body = yaml.safe_dump(
+        msgspec.to_builtins(system), sort_keys=False, allow_unicode=True, width=100
+    )
+    header = f"# Deployment-time Configured System Model of '{system.system}'\n"
+    return header + (f"# {note}\n" if note else "") + body
+
+
+# ---- the command table and main ----------------------------------------------------------
+COMMANDS: dict[str, Command] = {
+    "validate": Command(
+        "check every model of a package and their cross-references",
+        _configure_validate,
+        _run_validate,
+    ),
+    "resolve": Command(
+        "print the Deployment-time Configured System Model for a feature selection",
+        _configure_resolve,
+        _run_resolve,
+    ),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rra", description="RRA: Robotics Run-time Adaptation (IROS 2015) on Zenoh."
+    )
+    parser.add_argument("--version", action="version", version=f"rra {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, cmd in COMMANDS.items():
+        cmd.configure(sub.add_parser(name, help=cmd.help, description=cmd.help))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``rra`` with ``argv`` (default: the process arguments); returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return COMMANDS[args.command].run(args)
+    except KeyboardInterrupt:
+        return 130
+    except RraError as e:
+        for err in flatten_errors(e):
+            located = isinstance(err, LocatedError) and err.location is not None
+            print(str(err) if located else f"rra {args.command}: {err}", file=sys.stderr)
+        return 1
+    except BrokenPipeError:  # e.g. `rra resolve PKG | head`: stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,498 @@
+"""Cross-reference validation of a loaded system package.
+
+Each model file is well-formed on its own once loaded; this module checks what ties them
+together (a connection's ports exist and agree, a resolution model names real features,
+components and parameters, a measurement's source publishes a known data type, ...). Every
+problem is a `ModelError` located at the offending reference, saying what was expected.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import re
+import sys
+from collections.abc import Hashable, Iterable, Iterator
+from pathlib import Path
+from typing import TypeVar
+
+from rra_agent.errors import ModelError
+from rra_agent.models.loader import SystemPackage
+from rra_agent.models.measurements import PRIMITIVE_TYPES, DataType, Measurement
+from rra_agent.models.resolution import ConnectionRef, ResolutionModel, Transformation
+from rra_agent.models.system import (
+    Component,
+    Connection,
+    Parameter,
+    Port,
+    parse_endpoint,
+    value_has_type,
+)
+from rra_agent.models.yamlload import PathItem, unknown_name
+
+H = TypeVar("H", bound=Hashable)
+_LIST_RE = re.compile(r"^list\[(.+)\]$")
+_BINDING_WORD = {"deployment": "deployment time", "runtime": "run time"}
+
+
+def validate_package(pkg: SystemPackage) -> list[ModelError]:
+    """Every cross-reference problem of ``pkg``, in file order (empty when it is consistent)."""
+    return _Checker(pkg).run()
+
+
+class _Checker:
+    """Walks the models of one package, collecting located errors."""
+
+    def __init__(self, pkg: SystemPackage) -> None:
+        self.pkg = pkg
+        self.fm = pkg.features
+        self.components = {c.name: c for c in pkg.system.components}
+        self.types = {t.name: t for t in pkg.measurements.data_types}
+        self.errors: list[ModelError] = []
+        self._callables: dict[str, str | None] = {}
+
+    def run(self) -> list[ModelError]:
+        self.check_manifest()
+        self.check_system()
+        for kind in ("deployment", "runtime"):
+            self.check_resolution(kind)
+        self.check_replacement()
+        with _on_sys_path(self.pkg.root):
+            self.check_measurements()
+        return _in_file_order(self.errors)
+
+    # ---- helpers ------------------------------------------------------------------------
+    def error(
+        self, model: str, path: tuple[PathItem, ...], message: str, key: bool = False
+    ) -> None:
+        doc = self.pkg.doc(model)
+        loc = doc.key_loc(*path) if key else doc.loc(*path)
+        self.errors.append(doc.error(message, loc))
+
+    def component(self, model: str, path: tuple[PathItem, ...], name: str) -> Component | None:
+        comp = self.components.get(name)
+        if comp is None:
+            self.error(model, path, unknown_name("component", name, self.components))
+        return comp
+
+    def endpoint(
+        self, model: str, path: tuple[PathItem, ...], text: str, direction: str | None = None
+    ) -> Port | None:
+        """The port named by ``component.port`` (checking its direction), or None."""
+        ep = parse_endpoint(text)
+        comp = self.component(model, path, ep.component)
+        if comp is None:
+            return None
+        port = comp.port(ep.port)
+        if port is None:
+            known = [p.name for p in comp.ports]
+            self.error(model, path, unknown_name("port", ep.port, known, f" of '{comp.name}'"))
+        elif direction is not None and port.direction != direction:
+            self.error(
+                model,
+                path,
+                f"'{text}' is a {port.direction} port; expected a {direction} port here",
+            )
+            return None
+        return port
+
+    def type_known(self, expr: str) -> bool:
+        m = _LIST_RE.match(expr.strip())
+        if m:
+            return self.type_known(m[1])
+        return expr.strip() in PRIMITIVE_TYPES or expr.strip() in self.types
+
+    def unknown_type(self, expr: str) -> str:
+        known = [*PRIMITIVE_TYPES, *self.types]
+        return unknown_name("type", expr, known) + "; expected a primitive, list[T] or a data type"
+
+    # ---- manifest -----------------------------------------------------------------------
+    def check_manifest(self) -> None:
+        if "manifest" not in self.pkg.docs:
+            return
+        for i, name in enumerate(self.pkg.manifest.default_selection):
+            self.feature_ref("manifest", ("default_selection", i), name, "deployment")
+
+    def feature_ref(
+        self, model: str, path: tuple[PathItem, ...], name: str, binding: str, key: bool = False
+    ) -> str | None:
+        """The feature named ``name`` (or alias) if it exists and has ``binding``."""
+        resolved = self.fm.resolve_name(name)
+        if resolved is None:
+            known = list(self.fm.features) + list(self.fm.aliases)
+            self.error(model, path, unknown_name("feature", name, known), key)
+            return None
+        actual = self.fm.binding[resolved]
+        if actual != binding:
+            word = _BINDING_WORD[actual]
+            if model == "manifest":
+                msg = f"feature '{name}' is bound at {word}; a deployment selection names"
+                msg += " deployment-time features only"
+            else:
+                msg = f"feature '{name}' is bound at {word}; its transformations belong in"
+                msg += f" {getattr(self.pkg.manifest, actual)}"
+            self.error(model, path, msg, key)
+        return resolved
+
+    # ---- system.yaml --------------------------------------------------------------------
+    def check_system(self) -> None:
+        system = self.pkg.system
+        hosts = [h.name for h in system.hosts]
+        for i, name in _duplicates(hosts):
+            self.error("system", ("hosts", i, "name"), f"duplicate host name '{name}'")
+        for i, comp in enumerate(system.components):
+            self.check_component(i, comp, set(hosts))
+        keys = [c.key for c in system.connections]
+        for i, key in _duplicates(keys):
+            self.error("system", ("connections", i), f"duplicate connection {key[0]} -> {key[1]}")
+        for i, conn in enumerate(system.connections):
+            self.check_connection(i, conn)
+
+    def check_component(self, i: int, comp: Component, hosts: set[str]) -> None:
+        path: tuple[PathItem, ...] = ("components", i)
+        if hosts and comp.host is not None and comp.host not in hosts:
+            self.error("system", (*path, "host"), unknown_name("host", comp.host, hosts))
+        for j, port in enumerate(comp.ports):
+            if not self.type_known(port.type):
+                self.error("system", (*path, "ports", j, "type"), self.unknown_type(port.type))
+        for name, param in comp.parameters.items():
+            problem = _out_of_range(param, param.value)
+            if problem:
+                self.error("system", (*path, "parameters", name, "value"), problem)
+
+    def check_connection(self, i: int, conn: Connection) -> None:
+        src = self.endpoint("system", ("connections", i, "from"), conn.source, "publish")
+        dst = self.endpoint("system", ("connections", i, "to"), conn.target, "subscribe")
+        if src is not None and dst is not None and src.type != dst.type:
+            self.error(
+                "system",
+                ("connections", i, "to"),
+                f"message type mismatch: '{conn.source}' publishes {src.type} but"
+                f" '{conn.target}' expects {dst.type}",
+            )
+
+    # ---- deployment.yaml / runtime.yaml -------------------------------------------------
+    def check_resolution(self, kind: str) -> None:
+        model: ResolutionModel = getattr(self.pkg, kind)
+        seen: dict[str, str] = {}
+        for fname, transformations in model.features.items():
+            resolved = self.feature_ref(kind, ("features", fname), fname, kind, key=True)
+            if resolved is not None and resolved in seen:
+                msg = f"feature '{fname}' already has transformations (as '{seen[resolved]}')"
+                self.error(kind, ("features", fname), msg, key=True)
+            if resolved is not None:
+                seen.setdefault(resolved, fname)
+            for j, t in enumerate(transformations):
+                self.check_transformation(kind, ("features", fname, j, t.op), t)
+
+    def check_transformation(
+        self, kind: str, path: tuple[PathItem, ...], t: Transformation
+    ) -> None:
+        match t.op:
+            case "include_component":
+                self.check_include(kind, path, t.include_component or "")
+            case "remove_component":
+                self.component(kind, path, t.remove_component or "")
+            case "set_implementation":
+                self.check_set_implementation(kind, path, t)
+            case "set_parameter":
+                self.check_set_parameter(kind, path, t)
+            case "add_connection" | "remove_connection":
+                ref = t.add_connection or t.remove_connection
+                assert ref is not None
+                self.check_connection_ref(kind, path, ref, adding=t.op == "add_connection")
+
+    def check_include(self, kind: str, path: tuple[PathItem, ...], name: str) -> None:
+        comp = self.component(kind, path, name)
+        if comp is None:
+            return
+        if not comp.optional:
+            self.error(
+                kind,
+                path,
+                f"component '{name}' is not optional (only optional ones can be included)",
+            )
+        elif comp.binding != kind:
+            self.error(
+                kind,
+                path,
+                f"component '{name}' is bound at {_BINDING_WORD[comp.binding]}; include it from"
+                f" {getattr(self.pkg.manifest, comp.binding)}",
+            )
+
+    def check_set_implementation(
+        self, kind: str, path: tuple[PathItem, ...], t: Transformation
+    ) -> None:
+        ref = t.set_implementation
+        assert ref is not None
+        comp = self.component(kind, (*path, "component"), ref.component)
+        if comp is not None and ref.implementation not in comp.implementations:
+            where = f" of '{comp.name}'"
+            msg = unknown_name("implementation", ref.implementation, comp.implementations, where)
+            self.error(kind, (*path, "implementation"), msg)
+
+    def check_set_parameter(self, kind: str, path: tuple[PathItem, ...], t: Transformation) -> None:
+        ref = t.set_parameter
+        assert ref is not None
+        comp = self.component(kind, (*path, "component"), ref.component)
+        if comp is None:
+            return
+        param = comp.parameters.get(ref.parameter)
+        if param is None:
+            msg = unknown_name("parameter", ref.parameter, comp.parameters, f" of '{comp.name}'")
+            self.error(kind, (*path, "parameter"), msg)
+            return
+        if ref.value is not None:
+            self.check_parameter_value(
+                kind, (*path, "value"), f"{comp.name}.{ref.parameter}", param, ref.value
+            )
+        if ref.from_attribute is not None:
+            self.check_from_attribute(kind, (*path, "from_attribute"), ref.from_attribute, param)
+
+    def check_parameter_value(
+        self, kind: str, path: tuple[PathItem, ...], name: str, param: Parameter, value: object
+    ) -> None:
+        if not value_has_type(value, param.type):
+            self.error(
+                kind,
+                path,
+                f"value {value!r} is not of type {param.type} (the type of parameter {name})",
+            )
+            return
+        problem = _out_of_range(param, value)
+        if problem:
+            self.error(kind, path, f"{problem} (parameter {name})")
+
+    def check_from_attribute(
+        self, kind: str, path: tuple[PathItem, ...], name: str, param: Parameter
+    ) -> None:
+        if kind != "runtime":
+            self.error(
+                kind,
+                path,
+                "from_attribute is only allowed in the run-time resolution"
+                f" model ({self.pkg.manifest.runtime}); CV values are set at run time",
+            )
+            return
+        owner_attr = self.fm.attributes.get(name)
+        cvs = [a for a, (_, attr) in self.fm.attributes.items() if attr.kind == "cv"]
+        if owner_attr is None:
+            self.error(kind, path, unknown_name("CV attribute", name, cvs))
+        elif owner_attr[1].kind != "cv":
+            self.error(
+                kind,
+                path,
+                f"attribute '{name}' of '{owner_attr[0]}' is a"
+                f" {owner_attr[1].kind} attribute; expected a cv one (known: "
+                f"{', '.join(sorted(cvs)) or 'none'})",
+            )
+        elif param.type not in ("float", "int"):
+            self.error(kind, path, f"a CV attribute sets a numeric parameter, not a {param.type}")
+
+    def check_connection_ref(
+        self, kind: str, path: tuple[PathItem, ...], ref: ConnectionRef, adding: bool
+    ) -> None:
+        src = self.endpoint(kind, (*path, "from"), ref.source)
+        dst = self.endpoint(kind, (*path, "to"), ref.target)
+        if src is None or dst is None:
+            return
+        conn = next((c for c in self.pkg.system.connections if c.key == ref.key), None)
+        arrow = f"{ref.source} -> {ref.target}"
+        if conn is None:
+            need = " with optional: true" if adding else ""
+            self.error(
+                kind,
+                path,
+                f"no connection {arrow} in the template system model (declare"
+                f" it in {self.pkg.manifest.system}{need})",
+            )
+        elif adding and not conn.optional:
+            self.error(
+                kind, path, f"connection {arrow} is not optional (only optional ones can be added)"
+            )
+        elif adding and conn.binding != kind:
+            self.error(
+                kind,
+                path,
+                f"connection {arrow} is bound at {_BINDING_WORD[conn.binding]};"
+                f" add it from {getattr(self.pkg.manifest, conn.binding)}",
+            )
+
+    def check_replacement(self) -> None:
+        rep = self.pkg.runtime.replacement
+        for name in rep.components:
+            if name not in self.components:
+                msg = unknown_name("component", name, self.components)
+                self.error("runtime", ("replacement", "components", name), msg, key=True)
+        targets = [st.target for st in rep.state_transfer]
+        for i, st in enumerate(rep.state_transfer):
+            path: tuple[PathItem, ...] = ("replacement", "state_transfer", i)
+            self.component("runtime", (*path, "from"), st.source)
+            self.component("runtime", (*path, "to"), st.target)
+        for i, name in _duplicates(targets):
+            self.error(
+                "runtime",
+                ("replacement", "state_transfer", i, "to"),
+                f"duplicate state transfer into '{name}'",
+            )
+
+    # ---- measurements.yaml --------------------------------------------------------------
+    def check_measurements(self) -> None:
+        for i, dt in enumerate(self.pkg.measurements.data_types):
+            self.check_data_type(i, dt)
+        for i, m in enumerate(self.pkg.measurements.measurements):
+            self.check_measurement(i, m)
+
+    def check_data_type(self, i: int, dt: DataType) -> None:
+        path: tuple[PathItem, ...] = ("data_types", i)
+        if dt.name in PRIMITIVE_TYPES:
+            self.error(
+                "measurements", (*path, "name"), f"data type '{dt.name}' shadows a primitive type"
+            )
+        for name, expr in dt.fields.items():
+            if not self.type_known(expr):
+                self.error("measurements", (*path, "fields", name), self.unknown_type(expr))
+        for name, dotted in dt.functions.items():
+            problem = self.callable_problem(dotted)
+            if problem:
+                self.error("measurements", (*path, "functions", name), problem)
+
+    def check_measurement(self, i: int, m: Measurement) -> None:
+        path: tuple[PathItem, ...] = ("measurements", i)
+        ports: list[Port | None] = []
+        for j, src in enumerate(m.inputs):
+            where = (*path, "source") if m.source is not None else (*path, "sources", j)
+            ports.append(self.endpoint("measurements", where, src, "publish"))
+        if any(p is None for p in ports):
+            return
+        in_types = [self.types.get(p.type) for p in ports if p is not None]
+        if m.field is not None:
+            self.check_field(path, m, ports[0], in_types[0])
+        if m.function is not None:
+            self.check_function(path, m, in_types)
+
+    def check_field(
+        self, path: tuple[PathItem, ...], m: Measurement, port: Port | None, dt: DataType | None
+    ) -> None:
+        assert m.field is not None and port is not None
+        if dt is None:
+            self.error(
+                "measurements",
+                (*path, "field"),
+                f"'{m.source}' carries {port.type},"
+                f" which has no fields (a field needs a data type)",
+            )
+        elif m.field not in dt.fields:
+            msg = unknown_name("field", m.field, dt.fields, f" of {dt.name}")
+            self.error("measurements", (*path, "field"), msg)
+        elif not _measurable(dt.fields[m.field], m.type):
+            self.error(
+                "measurements",
+                (*path, "field"),
+                f"field '{m.field}' of {dt.name} is"
+                f" {dt.fields[m.field]}, but measurement '{m.name}' is {m.type}",
+            )
+
+    def check_function(
+        self, path: tuple[PathItem, ...], m: Measurement, in_types: list[DataType | None]
+    ) -> None:
+        assert m.function is not None
+        named = {k for dt in in_types if dt is not None for k in dt.functions}
+        if m.function in named:
+            return
+        if "." not in m.function:
+            msg = unknown_name("function", m.function, named)
+            msg += "; expected a function of the source data type or a dotted Python path"
+            self.error("measurements", (*path, "function"), msg)
+            return
+        problem = self.callable_problem(m.function)
+        if problem:
+            self.error("measurements", (*path, "function"), problem)
+
+    def callable_problem(self, dotted: str) -> str | None:
+        if dotted not in self._callables:
+            self._callables[dotted] = _callable_problem(dotted)
+        return self._callables[dotted]
+
+
+# ---- plain helpers -----------------------------------------------------------------------
+def _in_file_order(errors: list[ModelError]) -> list[ModelError]:
+    """Errors by file (in order of first appearance), then by line and column."""
+    files: dict[str, int] = {}
+    for e in errors:
+        files.setdefault(e.location.file if e.location else "", len(files))
+
+    def key(e: ModelError) -> tuple[int, int, int]:
+        loc = e.location
+        return (files[loc.file], loc.line, loc.col) if loc else (files[""], 0, 0)
+
+    return sorted(errors, key=key)
+
+
+def _duplicates(items: Iterable[H]) -> Iterator[tuple[int, H]]:
+    """(index, item) of every repeated occurrence after the first."""
+    seen: set[H] = set()
+    for i, item in enumerate(items):
+        if item in seen:
+            yield i, item
+        seen.add(item)
+
+
+def _out_of_range(param: Parameter, value: object) -> str | None:
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return None
+    if param.min is not None and value < param.min:
+        return f"value {value} is below the minimum {param.min}"
+    if param.max is not None and value > param.max:
+        return f"value {value} is above the maximum {param.max}"
+    return None
+
+
+def _measurable(field_type: str, measurement_type: str) -> bool:
+    return field_type == measurement_type or (field_type, measurement_type) == ("int", "float")
+
+
+def _callable_problem(dotted: str) -> str | None:
+    """Why ``dotted`` does not import to a callable (None when it does)."""
+    parts = dotted.split(".")
+    if len(parts) < 2 or not all(p.isidentifier() for p in parts):
+        return f"'{dotted}' is not a dotted Python path (expected module.function)"
+    for i in range(len(parts) - 1, 0, -1):
+        modname = ".".join(parts[:i])
+        try:
+            module = importlib.import_module(modname)
+        except ModuleNotFoundError as e:
+            if e.name is not None and (modname == e.name or modname.startswith(e.name + ".")):
+                continue
+            return f"importing '{modname}' failed: {e}"
+        except (Exception, SystemExit) as e:
+            return f"importing '{modname}' failed: {type(e).__name__}: {e}"
+        return _attribute_problem(module, modname, parts[i:], dotted)
+    return f"cannot import '{dotted}': no module named '{parts[0]}'"
+
+
+def _attribute_problem(obj: object, owner: str, attrs: list[str], dotted: str) -> str | None:
+    for attr in attrs:
+        if not hasattr(obj, attr):
+            known = [n for n in dir(obj) if not n.startswith("_")]
+            return unknown_name("name", attr, known, f" in '{owner}'")
+        obj, owner = getattr(obj, attr), f"{owner}.{attr}"
+    return None if callable(obj) else f"'{dotted}' is not callable"
+
+
+@contextlib.contextmanager
+def _on_sys_path(root: Path) -> Iterator[None]:
+    """Put the package folder first on sys.path; forget the modules imported from it after."""
+    folder = str(root.resolve())
+    before = set(sys.modules)
+    sys.path.insert(0, folder)
+    importlib.invalidate_caches()
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ValueError):
+            sys.path.remove(folder)
+        for name in set(sys.modules) - before:
+            file = getattr(sys.modules[name], "__file__", None) or ""
+            if file.startswith(folder + "/") or file.startswith(folder + "\\"):
+                del sys.modules[name]

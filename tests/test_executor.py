@@ -1,0 +1,229 @@
+"""Plan execution: strategies, ordering, state transfer and rollback, with a fake actuator."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+
+from rra_agent.agents.executor import Executor, StepFailed, spec_for
+from rra_agent.bus.keys import Keys
+from rra_agent.bus.messages import NodeSpec
+from rra_agent.core import resolution as r
+from rra_agent.core.features import complete_deployment
+from rra_agent.models.loader import load_package
+from rra_agent.models.resolution import Replacement, StateTransfer
+from rra_agent.models.system import SystemModel
+
+ROOT = Path(__file__).resolve().parents[1]
+K = Keys("quadcopter")
+
+
+class FakeActuator:
+    def __init__(self) -> None:
+        self.calls: list[tuple] = []
+        self.fail_on: set[tuple[str, str]] = set()
+        self.states: dict[str, Any] = {"controller": {"integral": 1.5}}
+
+    def _do(self, op: str, name: str, *rest: Any) -> None:
+        self.calls.append((op, name, *rest))
+        if (op, name) in self.fail_on:
+            raise StepFailed(f"{op} {name} failed")
+
+    def start(self, specs: list[NodeSpec]) -> None:
+        for s in specs:
+            self._do("start", s.name, s.active, s.state)
+
+    def stop(self, specs: list[NodeSpec]) -> None:
+        for s in specs:
+            self._do("stop", s.name)
+
+    def set_params(self, spec, values):
+        self._do("params", spec.name, dict(values))
+
+    def rewire(self, spec, port, keys):
+        self._do("rewire", spec.name, port, tuple(keys))
+
+    def set_active(self, spec, active):
+        self._do("active", spec.name, active)
+
+    def export_state(self, spec):
+        self._do("export", spec.name)
+        return self.states.get(spec.name)
+
+    def import_state(self, spec, state):
+        self._do("import", spec.name, state)
+
+
+@pytest.fixture(scope="module")
+def quad():
+    pkg = load_package(ROOT / "scenarios" / "quadcopter")
+    dep = complete_deployment(pkg.features, pkg.manifest.default_selection)
+    configured = r.resolve_deployment(pkg.system, pkg.deployment, pkg.features, dep)
+    fm = pkg.features
+
+    def target(*features: str) -> SystemModel:
+        sel = {"Quadcopter", "Controller", *features}
+        return r.resolve_runtime(configured, pkg.runtime, fm, sel, {})
+
+    return configured, target
+
+
+def make(strategy: str, transfer: bool = True) -> tuple[Executor, FakeActuator]:
+    act = FakeActuator()
+    rep = Replacement(
+        default="stop-then-start",
+        components={"proploss_controller": strategy},  # type: ignore[dict-item]
+        state_transfer=[StateTransfer(source="controller", target="proploss_controller")]
+        if transfer
+        else [],
+    )
+    return Executor(act, K, rep, default_host="local"), act
+
+
+def deploy(ex: Executor, act: FakeActuator, target: SystemModel) -> None:
+    empty = msgspec.structs.replace(target, components=[], connections=[])
+    assert ex.execute(r.diff(empty, target)).ok
+    act.calls.clear()
+
+
+def swap_plan(target) -> r.Plan:
+    plan = r.diff(target("Standard"), target("Proploss"))
+    kinds = [type(s).__name__ for s in plan.steps]
+    assert kinds == ["SwapComponent", "Rewire"], kinds
+    return plan
+
+
+def test_deploy_starts_everything_at_once_and_tracks_specs(quad):
+    _, target = quad
+    ex, act = make("stop-then-start")
+    empty = msgspec.structs.replace(target("Standard"), components=[], connections=[])
+    out = ex.execute(r.diff(empty, target("Standard")))
+    assert out.ok and [c[0] for c in act.calls] == ["start"] * 4
+    assert set(ex.running) == {
+        "trajectory_generator",
+        "estimator",
+        "controller",
+        "vehicle_simulator",
+    }
+    sim = ex.running["vehicle_simulator"]
+    assert sim.ports["motor_cmd"].keys == [K.data("controller/motor_cmd")]
+
+
+def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
+    _, target = quad
+    ex, act = make("stop-then-start")
+    deploy(ex, act, target("Standard"))
+    out = ex.execute(swap_plan(target))
+    assert out.ok, out.error
+    assert act.calls == [
+        ("export", "controller"),
+        ("stop", "controller"),
+        ("start", "proploss_controller", True, {"integral": 1.5}),
+        ("rewire", "vehicle_simulator", "motor_cmd", (K.data("proploss_controller/motor_cmd"),)),
+    ]
+    assert "controller" not in ex.running and "proploss_controller" in ex.running
+
+
+def test_start_then_stop_makes_before_break(quad):
+    _, target = quad
+    ex, act = make("start-then-stop")
+    deploy(ex, act, target("Standard"))
+    assert ex.execute(swap_plan(target)).ok
+    ops = [c[:2] for c in act.calls]
+    assert ops == [
+        ("start", "proploss_controller"),
+        ("export", "controller"),
+        ("import", "proploss_controller"),
+        ("active", "proploss_controller"),
+        ("active", "controller"),
+        ("rewire", "vehicle_simulator"),
+        ("stop", "controller"),  # last: after the simulator listens to the new node
+    ]
+    assert act.calls[0][2] is False  # started inactive
+
+
+def test_standby_switch_is_activate_rewire_and_no_start(quad):
+    _, target = quad
+    ex, act = make("standby")
+    deploy(ex, act, target("Standard"))
+    plan = swap_plan(target)
+    swap = plan.steps[0]
+    pre = spec_for(K, swap.definition, dict(swap.inputs), dict(swap.outputs), default_host="l")
+    assert ex.prestart_standby([pre]).ok
+    assert act.calls == [("start", "proploss_controller", False, None)]
+    act.calls.clear()
+    out = ex.execute(plan)
+    assert out.ok and out.first_switch is not None
+    assert [c[0] for c in act.calls] == ["export", "import", "active", "active", "rewire", "stop"]
+    assert act.calls[2] == ("active", "proploss_controller", True)
+    assert not ex.standby and ex.running["proploss_controller"].active
+
+
+def test_failed_start_rolls_back_to_the_previous_configuration(quad):
+    _, target = quad
+    ex, act = make("stop-then-start", transfer=False)
+    deploy(ex, act, target("Standard"))
+    before = dict(ex.running)
+    act.fail_on = {("start", "proploss_controller")}
+    out = ex.execute(swap_plan(target))
+    assert not out.ok and out.rolled_back and "proploss_controller" in out.error
+    assert act.calls[-1] == ("start", "controller", True, None)  # the old one is back
+    assert ex.running == before
+    assert any(not rec.ok for rec in out.records)
+
+
+def test_failed_rewire_undoes_the_swap_in_reverse_order(quad):
+    _, target = quad
+    ex, act = make("start-then-stop", transfer=False)
+    deploy(ex, act, target("Standard"))
+    act.fail_on = {("rewire", "vehicle_simulator")}
+    out = ex.execute(swap_plan(target))
+    assert out.rolled_back
+    failed = (
+        "rewire",
+        "vehicle_simulator",
+        "motor_cmd",
+        (K.data("proploss_controller/motor_cmd"),),
+    )
+    undo = act.calls[act.calls.index(failed) + 1 :]
+    assert undo == [
+        ("active", "controller", True),
+        ("active", "proploss_controller", False),
+        ("stop", "proploss_controller"),
+    ]
+    assert set(ex.running) >= {"controller"} and "proploss_controller" not in ex.running
+
+
+def two_components(v: float, w: int) -> SystemModel:
+    def comp(name: str, param: str, type_: str, value: object) -> dict:
+        return {
+            "name": name,
+            "implementation": f"x.{name.upper()}",
+            "parameters": {param: {"type": type_, "value": value}},
+        }
+
+    return msgspec.convert(
+        {"system": "s", "components": [comp("a", "v", "float", v), comp("b", "w", "int", w)]},
+        SystemModel,
+    )
+
+
+def test_parameters_and_their_rollback():
+    sysm, tgt = two_components(1.0, 1), two_components(2.0, 5)
+    ex, act = make("stop-then-start")
+    deploy(ex, act, sysm)
+    act.fail_on = {("params", "b")}
+    out = ex.execute(r.diff(sysm, tgt))
+    assert out.rolled_back
+    assert act.calls == [
+        ("params", "a", {"v": 2.0}),
+        ("params", "b", {"w": 5}),
+        ("params", "a", {"v": 1.0}),
+    ]
+    assert ex.running["a"].params == {"v": 1.0}
+    act.fail_on = set()
+    assert ex.execute(r.diff(sysm, tgt)).ok
+    assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 5}

@@ -284,13 +284,28 @@ class FeatureModel(Model, frozen=True, dict=True):
 
     @cached_property
     def attributes(self) -> dict[str, tuple[str, Attribute]]:
-        """Every kinded (cim/nfr/cv) attribute by name -> (owning feature, attribute)."""
+        """Every kinded (cim/nfr/cv) attribute by name -> (owning feature, attribute).
+
+        NFR and CV names are unique in a model; a CIM name may repeat on the variants of a
+        variation point (``Latency`` on ChannelA and ChannelB, for ``MIN(Latency)``): here the
+        last one wins, so look CIMs up with `cim_attributes` or on the feature itself.
+        """
         return {
             a.name: (fname, a)
             for fname, f in self.features.items()
             for a in f.attributes
             if a.kind != "plain"
         }
+
+    @cached_property
+    def cim_attributes(self) -> dict[str, dict[str, Attribute]]:
+        """CIM attribute name -> {feature name: attribute}: variants share CIM names."""
+        out: dict[str, dict[str, Attribute]] = {}
+        for fname, f in self.features.items():
+            for a in f.attributes:
+                if a.kind == "cim":
+                    out.setdefault(a.name, {})[fname] = a
+        return out
 
     def runtime_features(self) -> list[str]:
         return [n for n, b in self.binding.items() if b == "runtime"]

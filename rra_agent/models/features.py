@@ -9,7 +9,8 @@ so any UVL tool can open the file:
 - Non-Functional Requirement: ``VelocityLimit {kind 'nfr', tag 'max', value 0.5, unit 'm/s',
   constrains 'MaxVel'}``;
 - Continuous Variability: ``MaxVel {kind 'cv', lower 0.4, upper 0.8, unit 'm/s'}``;
-- ``alias 'CommunicChannel'`` gives a multi-word feature a name usable unquoted in rules.
+- ``alias 'CommunicChannel'`` gives a multi-word feature a name usable unquoted in rules;
+- ``default`` marks the variant selected at start-up (else the first selectable one).
 
 Attribute values are kept exactly as written (``value``), so exporting back to UVL round-trips;
 the RRA view (`kind`, `lower`, ...) is derived from them.
@@ -32,7 +33,7 @@ GroupKind = Literal["mandatory", "optional", "alternative", "or", "cardinality"]
 Scalar = str | int | float | bool
 
 #: Attributes whose meaning RRA defines; anything else is carried along untouched.
-RRA_FEATURE_KEYS = frozenset({"binding", "alias", "abstract"})
+RRA_FEATURE_KEYS = frozenset({"binding", "alias", "abstract", "default"})
 
 
 class Span(msgspec.Struct, frozen=True):
@@ -140,6 +141,12 @@ class Feature(Model, frozen=True):
     @property
     def abstract(self) -> bool:
         a = self.attribute("abstract")
+        return a is not None and a.value in (None, True)
+
+    @property
+    def default(self) -> bool:
+        """Preferred variant of its group at run time (``{default}`` or ``default true``)."""
+        a = self.attribute("default")
         return a is not None and a.value in (None, True)
 
     @property

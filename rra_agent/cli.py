@@ -167,7 +167,33 @@ COMMANDS: dict[str, Command] = {
         _configure_resolve,
         _run_resolve,
     ),
+    "up": Command(
+        "run a system on this machine until Ctrl-C (engines and nodes as Zenoh peers)",
+        lambda p: _configure("rra_agent.agents.up:configure", p),
+        lazy("rra_agent.agents.up:run"),
+    ),
+    "status": Command(
+        "show a running system: selection, CV values, nodes with their state",
+        lambda p: _configure("rra_agent.agents.status:configure_status", p),
+        lazy("rra_agent.agents.status:run_status"),
+    ),
+    "events": Command(
+        "follow the adaptation events of a running system (or print an events.jsonl)",
+        lambda p: _configure("rra_agent.agents.status:configure_events", p),
+        lazy("rra_agent.agents.status:run_events"),
+    ),
+    "agent": Command(
+        "serve this machine as a host of a system: start and supervise its nodes",
+        lambda p: _configure("rra_agent.agents.host:configure", p),
+        lazy("rra_agent.agents.host:run"),
+    ),
 }
+
+
+def _configure(target: str, parser: argparse.ArgumentParser) -> None:
+    """Call a subcommand's ``configure`` living in another module."""
+    module, _, name = target.partition(":")
+    getattr(importlib.import_module(module), name)(parser)
 
 
 def build_parser() -> argparse.ArgumentParser:

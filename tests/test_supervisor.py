@@ -199,3 +199,13 @@ def test_token_lost_because_process_died_reports_the_exit(sup):
     assert s.state("n") == State.BACKOFF
     assert "status -9" in events[-1].reason
     assert (101, signal.SIGKILL) not in host.signals
+
+
+def test_stopped_transition_names_the_process_that_stopped(sup):
+    s, host, events = sup
+    s.start("n", 0.0)
+    s.on_alive("n", True, 0.1)
+    s.stop("n", 1.0)
+    s.tick(1.1)
+    assert events[-1].state == State.STOPPED and events[-1].pid == 101
+    assert s.procs["n"].pid is None

@@ -254,9 +254,14 @@ class Executor:
 
     def _spec(self, c: Component, inputs, outputs, *, active=True, state=None) -> NodeSpec:
         return spec_for(
-            self.keys, c, dict(inputs), dict(outputs),
-            default_host=self.default_host, active=active, state=state,
-        )  # fmt: skip
+            self.keys,
+            c,
+            dict(inputs),
+            dict(outputs),
+            default_host=self.default_host,
+            active=active,
+            state=state,
+        )
 
     # ---- actions (each with its inverse) -----------------------------------------------
     def _start(self, tx: Transaction, specs: list[NodeSpec]) -> None:

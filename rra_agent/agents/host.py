@@ -9,17 +9,12 @@ transition as a `NodeState` on ``rra/<system>/events``.
 It only starts implementations the system model declares: ``allowed`` is the set of
 implementations of the package it serves (None accepts any, for tests and tools).
 
-Threading: Zenoh callbacks only enqueue; the main thread owns the supervisor and spawns every
-process (the children's parent-death signal is tied to the spawning thread).
+Threading: Zenoh callbacks only post to the `MainLoop`; the main thread owns the supervisor and
+spawns every process (the children's parent-death signal is tied to the spawning thread).
 """
 
 from __future__ import annotations
 
-import contextlib
-import queue
-import select
-import signal
-import socket
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
@@ -30,6 +25,7 @@ import msgspec
 import zenoh
 
 from rra_agent.agents.localhost import LocalHost
+from rra_agent.agents.loop import MainLoop
 from rra_agent.agents.supervisor import RestartPolicy, StopPolicy, Supervisor, Transition
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
@@ -77,29 +73,16 @@ class HostAgent:
         self.allowed = frozenset(allowed) if allowed is not None else None
         self.clock = clock
         self.supervisor = Supervisor(restart=restart, stop=stop, listener=self._on_transition)
-        self.inbox: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self.loop = MainLoop(clock)
         self.dropped = 0
         self._publisher: zenoh.Publisher | None = None
-        self._rsock, self._wsock = socket.socketpair()
-        self._rsock.setblocking(False)
-        self._wsock.setblocking(False)
-        self._stop = False
+        #: Called with every NodeState this agent emits (e.g. ``rra up`` prints them).
+        self.observers: list[Callable[[m.NodeState], None]] = []
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
 
-    # ---- plumbing ----------------------------------------------------------------------
-    def wake(self) -> None:
-        with contextlib.suppress(BlockingIOError, OSError):
-            self._wsock.send(b"\0")
-
-    def post(self, fn: Callable[[], None]) -> None:
-        """Run ``fn`` on the main thread (from any thread, or a signal handler)."""
-        self.inbox.put(fn)
-        self.wake()
-
     def request_stop(self, *_: Any) -> None:
-        self._stop = True
-        self.wake()
+        self.loop.request_stop()
 
     def _on_transition(self, t: Transition) -> None:
         p = self.supervisor.procs.get(t.node)
@@ -117,6 +100,8 @@ class HostAgent:
         )
         if self._publisher is not None:
             self._publisher.put(_EVT.encode(msg))
+        for observe in self.observers:
+            observe(msg)
 
     # ---- Zenoh callbacks (enqueue only) -------------------------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
@@ -127,14 +112,14 @@ class HostAgent:
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
             req, err = None, f"malformed request: {e}"
         item = _Request(query, req, err)
-        self.post(lambda: self._serve(item))
+        self.loop.post(lambda: self._serve(item))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         parsed = self.keys.parse_alive(str(sample.key_expr))
         if parsed is None or parsed[0] != self.host:
             return
         alive = sample.kind == zenoh.SampleKind.PUT
-        self.post(lambda: self.supervisor.on_alive(parsed[1], alive, self.clock()))
+        self.loop.post(lambda: self.supervisor.on_alive(parsed[1], alive, self.clock()))
 
     # ---- requests (main thread) ---------------------------------------------------------
     def _serve(self, item: _Request) -> None:
@@ -207,8 +192,7 @@ class HostAgent:
     # ---- main loop ---------------------------------------------------------------------
     def run(self, *, install_signals: bool = True, on_ready: Callable[[], None] | None = None):
         if install_signals:
-            signal.signal(signal.SIGINT, self.request_stop)
-            signal.signal(signal.SIGTERM, self.request_stop)
+            self.loop.install_signals()
         self.session = session = open_session(self.session_bus)
         try:
             self._publisher = session.declare_publisher(
@@ -224,27 +208,15 @@ class HostAgent:
             ]
             if on_ready is not None:
                 on_ready()
-            while not self._stop:
-                self._cycle(TICK)
+            self.loop.run(self._tick, TICK)
             self._shutdown()
         finally:
             self._publisher = None
             self.local.kill_all()
             session.close()
 
-    def _cycle(self, timeout: float) -> None:
-        ready, _, _ = select.select([self._rsock], [], [], timeout)
-        if ready:
-            with contextlib.suppress(BlockingIOError, OSError):
-                while self._rsock.recv(256):
-                    pass
-        while True:
-            try:
-                fn = self.inbox.get_nowait()
-            except queue.Empty:
-                break
-            fn()
-        self.supervisor.tick(self.clock())
+    def _tick(self, now: float) -> None:
+        self.supervisor.tick(now)
         self.local.forget_exited(keep={p.pid for p in self.supervisor.procs.values() if p.pid})
 
     def _shutdown(self) -> None:
@@ -254,26 +226,46 @@ class HostAgent:
         pol = sup.stop_policy
         deadline = self.clock() + pol.sigint_timeout + pol.sigterm_timeout + 2.0
         while not sup.all_stopped() and self.clock() < deadline:
-            self._cycle(TICK)
+            self.loop.cycle(TICK)
+            self._tick(self.clock())
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.agents.host`` / ``rra agent``: serve one host until signalled."""
-    import argparse
+def configure(parser) -> None:  # argparse.ArgumentParser
+    from rra_agent.bus.config import add_bus_arguments
 
-    from rra_agent.bus.config import add_bus_arguments, bus_from_args
-
-    parser = argparse.ArgumentParser(prog="rra agent", description=__doc__.split("\n\n")[0])
     parser.add_argument("--system", required=True, help="system name (key-expression prefix)")
     parser.add_argument("--host", required=True, help="this host's name in the system model")
+    parser.add_argument("--package", help="serve only the implementations this package declares")
     parser.add_argument("--log-dir", default="rra-logs", help="node logs go here")
     parser.add_argument(
         "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
     )
     add_bus_arguments(parser)
-    args = parser.parse_args(argv)
-    HostAgent(args.system, args.host, bus_from_args(args), args.log_dir, hub=args.hub).run()
+
+
+def run(args) -> int:  # argparse.Namespace
+    """``rra agent``: serve one host until SIGINT/SIGTERM."""
+    from rra_agent.bus.config import bus_from_args
+
+    allowed = None
+    if args.package:
+        from rra_agent.agents.deployment import deploy
+
+        allowed = deploy(args.package).implementations
+    agent = HostAgent(
+        args.system, args.host, bus_from_args(args), args.log_dir, hub=args.hub, allowed=allowed
+    )
+    agent.run()
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rra_agent.agents.host``: the same as ``rra agent``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="rra agent", description=__doc__.split("\n\n")[0])
+    configure(parser)
+    return run(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

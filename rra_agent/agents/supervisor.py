@@ -265,8 +265,8 @@ class Supervisor:
         p.alive = False
         if p.state == State.STOPPING:
             p.deadline = None
-            p.pid = None
             self._set(p, State.STOPPED, now, f"stopped (exit status {status})")
+            p.pid = None  # after the transition, which names the process that stopped
             return
         if status == EXIT_CONFIG:
             p.deadline = None

@@ -30,7 +30,7 @@ class BusClient:
     def __init__(self, bus: BusConfig, system: str, session: zenoh.Session | None = None):
         self.keys = Keys(system)
         self._own = session is None
-        self.session = session if session is not None else open_session(bus)
+        self.session = session if session is not None else open_session(bus, wait_connected=True)
 
     def close(self) -> None:
         if self._own:

@@ -29,13 +29,29 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.node import Node, NodeCore
+from rra_agent.errors import RraError
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
 
 
-def open_session(bus: BusConfig) -> zenoh.Session:
-    return zenoh.open(bus.to_zenoh())
+def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Session:
+    """Open a Zenoh session. With ``wait_connected``, return only once a peer is linked
+    (``scouting/delay=0`` makes open return before the connect endpoints are reached, so a
+    query sent at once would find nobody); raise `NoPeer` after ``connect_timeout_ms``."""
+    session = zenoh.open(bus.to_zenoh())
+    if wait_connected and bus.connect:
+        deadline = time.monotonic() + bus.connect_timeout_ms / 1000.0
+        while not session.info.peers_zid():
+            if time.monotonic() >= deadline:
+                session.close()
+                raise NoPeer(f"no peer reachable at {', '.join(bus.connect)}")
+            time.sleep(0.002)
+    return session
+
+
+class NoPeer(RraError):
+    """Nothing answered at the bus endpoints (is the system running? right --connect?)."""
 
 
 def data_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:

@@ -1,0 +1,224 @@
+"""The executor's hands on the bus: host agents start and stop nodes, nodes obey control.
+
+Starting and stopping go through the host agent of the node's host (``StartNode``,
+``StopNode``). Termination is read from the `NodeState` events host agents publish;
+readiness from those *and* from the node's liveliness token as seen by this session: peers
+do not route for each other, so until the engine itself sees the token it has no link to
+the node and a control request would reach nobody.
+
+Each event gets a local sequence number and a wait only accepts events that arrived after
+its request, so an old RUNNING or STOPPED of an earlier instance is never mistaken for the
+new one. A node that backs off or goes FATAL while starting fails the step at once (the
+plan then rolls back) instead of waiting for the timeout.
+
+Parameters, rewiring, activation and state go straight to the node's control queryable; the
+host agent is told the new spec asynchronously (``UpdateSpec``) so a restart after a crash
+comes back with the current wiring and parameters, without slowing the switch down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from typing import Any
+
+import msgspec
+import zenoh
+
+from rra_agent.agents.executor import StepFailed
+from rra_agent.bus import messages as m
+from rra_agent.bus.client import BusClient, NoReply
+from rra_agent.bus.keys import Keys
+
+_EVT = m.Codec[m.EventMessage](m.EventMessage)
+_ANY = m.Codec[Any](Any)
+TERMINAL = frozenset({"STOPPED", "EXITED", "FATAL"})
+
+
+class ZenohActuator:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        *,
+        start_timeout: float = 15.0,
+        stop_timeout: float = 10.0,
+        request_timeout: float = 2.0,
+        on_node_state: Any = None,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.client = BusClient(None, keys.system, session=session)  # type: ignore[arg-type]
+        self.start_timeout = start_timeout
+        self.stop_timeout = stop_timeout
+        self.request_timeout = request_timeout
+        self.on_node_state = on_node_state
+        self.cond = threading.Condition()
+        self.seq = 0
+        self.history: dict[str, list[tuple[int, m.NodeState]]] = {}
+        #: Nodes whose liveliness token this session sees: a direct link to them exists.
+        self.alive: set[str] = set()
+        self.dropped = 0
+        self._subs = [
+            session.declare_subscriber(keys.events, self._on_event),
+            session.liveliness().declare_subscriber(keys.alive_all, self._on_alive, history=True),
+        ]
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        parsed = self.keys.parse_alive(str(sample.key_expr))
+        if parsed is None:
+            return
+        with self.cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(parsed[1])
+            else:
+                self.alive.discard(parsed[1])
+            self.cond.notify_all()
+
+    # ---- NodeState bookkeeping (Zenoh thread) -------------------------------------------
+    def _on_event(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = _EVT.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            self.dropped += 1
+            return
+        if not isinstance(msg, m.NodeState):
+            return
+        with self.cond:
+            self.seq += 1
+            hist = self.history.setdefault(msg.node, [])
+            hist.append((self.seq, msg))
+            del hist[:-32]
+            self.cond.notify_all()
+        if self.on_node_state is not None:
+            self.on_node_state(msg)
+
+    def _mark(self) -> int:
+        with self.cond:
+            return self.seq
+
+    def _since(self, node: str, mark: int) -> list[m.NodeState]:
+        return [s for q, s in self.history.get(node, ()) if q > mark]
+
+    def _wait(self, names: list[str], mark: int, done, failed, timeout: float, what: str) -> None:
+        """Wait until ``done(events)`` for every node, or raise on ``failed``/timeout."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                pending = []
+                for n in names:
+                    evs = self._since(n, mark)
+                    bad = failed(evs)
+                    if bad is not None:
+                        raise StepFailed(f"{what} {n}: {bad.state} ({bad.reason})")
+                    if not done(evs):
+                        pending.append(n)
+                if not pending:
+                    return
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise StepFailed(f"{what} {', '.join(pending)}: timed out after {timeout:g} s")
+                self.cond.wait(left)
+
+    # ---- Actuator ----------------------------------------------------------------------
+    def start(self, specs: list[m.NodeSpec]) -> None:
+        mark = self._mark()
+        sent: list[m.NodeSpec] = []
+        try:
+            for spec in specs:
+                self._host(spec, m.StartNode(spec=spec), "start")
+                sent.append(spec)
+            self._wait(
+                [s.name for s in specs],
+                mark,
+                # RUNNING (the host agent saw the token) and the token seen here, which means
+                # this session has its own link to the node: its control requests will arrive.
+                done=lambda evs: (
+                    any(e.state == "RUNNING" for e in evs) and evs[-1].node in self.alive
+                ),
+                failed=lambda evs: next(
+                    (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
+                ),
+                timeout=self.start_timeout,
+                what="start",
+            )
+        except (StepFailed, NoReply) as e:
+            self._abandon(sent)
+            raise StepFailed(str(e)) from None
+
+    def _abandon(self, specs: list[m.NodeSpec]) -> None:
+        """Best-effort stop of nodes whose start failed (no restart loop left behind)."""
+        for spec in specs:
+            with contextlib.suppress(NoReply, StepFailed):
+                self._host(spec, m.StopNode(node=spec.name), "stop")
+
+    def stop(self, specs: list[m.NodeSpec]) -> None:
+        mark = self._mark()
+        try:
+            for spec in specs:
+                self._host(spec, m.StopNode(node=spec.name), "stop")
+        except NoReply as e:
+            raise StepFailed(str(e)) from None
+        self._wait(
+            [s.name for s in specs],
+            mark,
+            done=lambda evs: any(e.state in TERMINAL for e in evs),
+            failed=lambda evs: None,
+            timeout=self.stop_timeout,
+            what="stop",
+        )
+
+    def set_params(self, spec: m.NodeSpec, values: dict[str, Any]) -> None:
+        self._control(spec, m.SetParams(params=values))
+        self._update(msgspec.structs.replace(spec, params={**spec.params, **values}))
+
+    def rewire(self, spec: m.NodeSpec, port: str, keys: list[str]) -> None:
+        self._control(spec, m.Rewire(port=port, keys=keys))
+        ports = dict(spec.ports)
+        ports[port] = msgspec.structs.replace(ports[port], keys=keys)
+        self._update(msgspec.structs.replace(spec, ports=ports))
+
+    def set_active(self, spec: m.NodeSpec, active: bool) -> None:
+        self._control(spec, m.Activate() if active else m.Deactivate())
+        self._update(msgspec.structs.replace(spec, active=active))
+
+    def export_state(self, spec: m.NodeSpec) -> Any:
+        return self._control(spec, m.ExportState())
+
+    def import_state(self, spec: m.NodeSpec, state: Any) -> None:
+        self._control(spec, m.ImportState(state=state))
+
+    # ---- helpers -----------------------------------------------------------------------
+    def _control(self, spec: m.NodeSpec, request: m.NodeRequest) -> Any:
+        try:
+            reply = self.client.node(spec.name, request, self.request_timeout)
+        except NoReply as e:
+            raise StepFailed(str(e)) from None
+        return self._ok(reply, f"{request.__struct_config__.tag} {spec.name}")
+
+    def _host(self, spec: m.NodeSpec, request: m.HostRequest, what: str) -> Any:
+        reply = self.client.host(spec.host, request, self.request_timeout)
+        return self._ok(reply, f"{what} {spec.name} on {spec.host}")
+
+    @staticmethod
+    def _ok(reply: m.Reply, what: str) -> Any:
+        match reply:
+            case m.Ok(result=result):
+                return result
+            case m.Err(message=message, code=code):
+                raise StepFailed(f"{what}: {message} ({code})")
+        raise StepFailed(f"{what}: unexpected reply {reply!r}")
+
+    def _update(self, spec: m.NodeSpec) -> None:
+        """Tell the host agent the node's current spec, without waiting for the answer."""
+        self.session.get(
+            self.keys.host_ctl(spec.host),
+            lambda _reply: None,
+            payload=_ANY.encode(m.UpdateSpec(spec=spec)),
+            timeout=self.request_timeout,
+        )

@@ -1,0 +1,57 @@
+"""Command-line plumbing shared by the engine processes (monitor, adaptation, resolution).
+
+An engine started by a host agent finds its name and host in ``RRA_NODE_SPEC`` and its bus in
+``RRA_BUS_CONFIG``, like a node; started by hand it takes ``--name``/``--host`` and the bus
+flags. Model errors are printed as ``file:line:col: message`` and the engine exits with 2
+(the supervisor's "do not restart" status).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import msgspec
+
+from rra_agent.agents.deployment import Deployment, deploy
+from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
+from rra_agent.bus.messages import NodeSpec
+from rra_agent.errors import RraError
+from rra_agent.node import SPEC_ENV
+
+
+def engine_arguments(prog: str, doc: str | None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0])
+    parser.add_argument("--package", required=True, help="system package folder")
+    parser.add_argument(
+        "--select", action="append", default=[], help="deployment-time features (comma list)"
+    )
+    parser.add_argument("--run-dir", help="where logs of this run go")
+    parser.add_argument("--host", default=None, help="this process' host (default: local)")
+    parser.add_argument("--name", default=None, help="this engine's name on the bus")
+    add_bus_arguments(parser)
+    return parser
+
+
+def engine_setup(
+    args: argparse.Namespace, default_name: str
+) -> tuple[Deployment, BusConfig, str, str] | None:
+    """(deployment, bus, host, name), or None after printing why the engine cannot run."""
+    name, host = args.name or default_name, args.host or "local"
+    raw = os.environ.get(SPEC_ENV)
+    if raw:
+        try:
+            spec = msgspec.json.decode(raw, type=NodeSpec)
+            name, host = args.name or spec.name, args.host or spec.host
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            print(f"{default_name}: bad {SPEC_ENV}: {e}", file=sys.stderr)
+            return None
+    names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
+    try:
+        dep = deploy(args.package, names)
+        bus = bus_from_args(args)
+    except RraError as e:
+        print(str(e), file=sys.stderr)
+        return None
+    return dep, bus, host, name

@@ -1,0 +1,111 @@
+"""``rra up PKG --select ...``: run a whole system on this machine until Ctrl-C.
+
+This process is the local host agent and the bus hub. It supervises the three engines as
+processes of their own — Context Monitor, Adaptation Engine, Run-time Resolution Engine —
+and, through the resolution engine's requests, every component node. Ctrl-C (or SIGTERM)
+stops all of them with the SIGINT -> SIGTERM -> SIGKILL escalation and exits only when
+none is left; a SIGKILL of this process takes its children with it (parent-death signal).
+Logs go to the run folder: one file per process and ``events.jsonl``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from rra_agent.agents.deployment import Deployment, deploy
+from rra_agent.agents.host import HostAgent
+from rra_agent.bus import messages as m
+from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
+from rra_agent.models.system import Command
+
+ENGINES = ("monitor", "adaptation", "resolution")
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("package", metavar="PKG", help="system package folder")
+    p.add_argument(
+        "--select",
+        "-s",
+        action="append",
+        default=[],
+        help="deployment-time features, comma separated (default: the manifest's)",
+    )
+    p.add_argument("--run-dir", help="logs and events of this run (default: .rra/<system>-<time>)")
+    p.add_argument("--host", default="local", help="this machine's host name (default: local)")
+    p.add_argument(
+        "--no-adaptation",
+        action="store_true",
+        help="do not run the adaptation engine (a scenario's control case)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    add_bus_arguments(p)
+
+
+def engine_specs(
+    dep: Deployment, names: list[str], run_dir: Path, host: str, adaptation: bool
+) -> list[m.NodeSpec]:
+    """The engines as supervised processes (their command lines are their implementations)."""
+    select = ["--select", ",".join(names)] if names else []
+    specs = []
+    for engine in ENGINES:
+        if engine == "adaptation" and (not adaptation or dep.package.adaptation is None):
+            continue
+        cmd = [
+            sys.executable,
+            "-m",
+            f"rra_agent.agents.{engine}",
+            "--package",
+            str(dep.package.root),
+            *select,
+            "--run-dir",
+            str(run_dir),
+        ]
+        specs.append(
+            m.NodeSpec(
+                system=dep.system, name=engine, host=host, implementation=Command(command=cmd)
+            )
+        )
+    return specs
+
+
+def _printer(quiet: bool):
+    def show(st: m.NodeState) -> None:
+        if quiet:
+            return
+        pid = f" pid {st.pid}" if st.pid else ""
+        why = f" ({st.reason})" if st.reason and st.state not in ("RUNNING", "STARTING") else ""
+        print(f"[{time.strftime('%H:%M:%S')}] {st.node:<24} {st.state}{pid}{why}", flush=True)
+
+    return show
+
+
+def run(args: argparse.Namespace) -> int:
+    names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
+    dep = deploy(args.package, names)
+    bus: BusConfig = bus_from_args(args)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    specs = engine_specs(dep, names, run_dir, args.host, not args.no_adaptation)
+    allowed = set(dep.implementations) | {" ".join(s.implementation.command) for s in specs}  # type: ignore[union-attr]
+    agent = HostAgent(dep.system, args.host, bus, run_dir / "logs", hub=True, allowed=allowed)
+    agent.observers.append(_printer(args.quiet))
+
+    def start_engines() -> None:
+        for spec in specs:
+            agent.handle(m.StartNode(spec=spec))
+        if not args.quiet:
+            hub = bus.connect[0] if bus.connect else "?"
+            print(
+                f"rra up: system {dep.system!r} ({', '.join(sorted(dep.selection))}) "
+                f"on {hub}; logs in {run_dir}; Ctrl-C to stop",
+                flush=True,
+            )
+
+    agent.run(on_ready=start_engines)
+    if not args.quiet:
+        print("rra up: all processes stopped", flush=True)
+    return 0

@@ -202,7 +202,7 @@ def test_token_lost_because_process_died_reports_the_exit(sup):
 
 
 def test_stopped_transition_names_the_process_that_stopped(sup):
-    s, host, events = sup
+    s, _host, events = sup
     s.start("n", 0.0)
     s.on_alive("n", True, 0.1)
     s.stop("n", 1.0)

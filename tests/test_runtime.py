@@ -1,0 +1,225 @@
+"""The distributed runtime end to end: `rra up` with real engine and node processes.
+
+Uses tests/data/relay_system: a Ticker ``source`` whose value is the measurement Level; Level
+above 5 selects Filtered (swap ``direct`` -> ``filtered``, rewire ``sink``), and the CV Gain
+follows Level into ``sink.offset``. Loopback only, a free hub port per test, multicast off,
+deadlines instead of sleeps; no process may outlive a test.
+"""
+
+from __future__ import annotations
+
+import shutil
+import signal
+from pathlib import Path
+
+import pytest
+import yaml
+
+from rra_agent.agents.events import read_events
+from rra_agent.agents.status import gather
+from rra_agent.bus import messages as m
+from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.keys import Keys
+
+DATA = Path(__file__).parent / "data" / "relay_system"
+K = Keys("relay_system")
+
+
+class System:
+    def __init__(self, procs, bus, run_dir: Path, package: Path, *extra: str) -> None:
+        self.procs = procs
+        self.run_dir = run_dir
+        self.proc = procs.python(
+            "rra_agent", "up", str(package), "--run-dir", str(run_dir), "-q",
+            "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra,
+            name="up",
+        )  # fmt: skip
+        self.client = BusClient(bus, "relay_system")
+        self.status = self.wait(lambda s: s["engine"] and not s["engine"]["failed"]
+                                and "sink" in s["engine"]["running"], "deployment")  # fmt: skip
+
+    def gather(self) -> dict:
+        st = gather(self.client, timeout=1.0)
+        for n in st["nodes"]:
+            self.procs.watch(n.get("pid"))
+        return st
+
+    def wait(self, pred, what: str, timeout: float = 30.0) -> dict:
+        def check():
+            st = self.gather()
+            return st if pred(st) else None
+
+        try:
+            return wait_until(check, timeout, what, interval=0.05)
+        except TimeoutError:
+            raise AssertionError(f"{what}: not reached; up log:\n{self.procs.log('up')}") from None
+
+    def node(self, st: dict, name: str) -> dict:
+        return next(n for n in st["nodes"] if n["node"] == name)
+
+    def ctl(self, node: str, req: m.NodeRequest) -> m.Reply:
+        wait_until(lambda: ("local", node) in self.client.alive(), 10, f"{node}'s token")
+        return self.client.node(node, req)
+
+    def set_level(self, value: float) -> None:
+        assert isinstance(self.ctl("source", m.SetParams(params={"value": value})), m.Ok)
+
+    def events(self) -> list:
+        return read_events(self.run_dir / "events.jsonl")
+
+    def stop(self) -> int:
+        self.client.close()
+        self.proc.send_signal(signal.SIGINT)
+        return self.proc.wait(30)
+
+
+@pytest.fixture
+def system(procs, bus, tmp_path):
+    started: list[System] = []
+
+    def start(package: Path = DATA, *extra: str) -> System:
+        s = System(procs, bus, tmp_path / "run", package, *extra)
+        started.append(s)
+        return s
+
+    yield start
+    for s in started:
+        if s.proc.poll() is None:
+            assert s.stop() == 0
+
+
+def package_copy(tmp_path: Path) -> Path:
+    pkg = tmp_path / "pkg"
+    shutil.copytree(DATA, pkg)
+    return pkg
+
+
+def edit_yaml(path: Path, fn) -> None:
+    data = yaml.safe_load(path.read_text())
+    fn(data)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def test_measurement_change_swaps_rewires_and_sets_cv_parameter(system):
+    sys_ = system()
+    st = sys_.status
+    assert set(st["engine"]["running"]) == {"source", "direct", "sink"}
+    sink_pid = sys_.node(st, "sink")["pid"]
+
+    sys_.set_level(7.0)
+    st = sys_.wait(lambda s: "Filtered" in s["engine"]["selection"]
+                   and "filtered" in s["engine"]["running"], "the swap to Filtered")  # fmt: skip
+    assert "direct" not in st["engine"]["running"]
+    assert sys_.node(st, "direct")["state"] == "STOPPED"
+    assert st["engine"]["cv"]["Gain"] == pytest.approx(7.0)
+    # The sink was rewired in place: same process, now listening to filtered's output ...
+    assert sys_.node(st, "sink")["pid"] == sink_pid
+    info = sys_.ctl("sink", m.Describe())
+    assert isinstance(info, m.Ok)
+    ports = {p["name"]: p["keys"] for p in info.result["ports"]}
+    assert ports["in"] == [K.data("filtered/out")]
+    # ... and the CV value reached its parameter.
+    assert info.result["params"]["offset"] == pytest.approx(7.0)
+    # What it now receives comes through `filtered` (offset 100 added there).
+    out: list[dict] = []
+    from rra_agent.bus.node import decode_data
+
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
+    )
+    wait_until(lambda: any(o.get("relay") == "sink" and o["value"] >= 114 for o in out), 10,
+               "samples through filtered")  # fmt: skip
+    sub.undeclare()
+
+    adaptations = [e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+                   and e.kind == "adaptation" and e.outcome == "ok"]  # fmt: skip
+    swap = next(e for e in adaptations if any("start filtered" in p for p in e.plan))
+    assert any(c.rule == "PathRule" for c in swap.cause)
+    assert {"plan", "execute"} <= set(swap.durations)
+
+
+def test_crashed_node_restarts_with_its_current_wiring(system):
+    sys_ = system()
+    sys_.set_level(7.0)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap")
+    sink = sys_.node(st, "sink")
+    assert sys_.client.host("local", m.SignalNode(node="sink", signal=signal.SIGKILL))
+    st = sys_.wait(lambda s: sys_.node(s, "sink")["pid"] not in (None, sink["pid"])
+                   and sys_.node(s, "sink")["state"] == "RUNNING", "sink restarted")  # fmt: skip
+    assert sys_.node(st, "sink")["restarts"] == 1
+    info = sys_.ctl("sink", m.Describe())
+    ports = {p["name"]: p["keys"] for p in info.result["ports"]}
+    assert ports["in"] == [K.data("filtered/out")]  # not the deployment-time wiring
+    assert info.result["params"]["offset"] == pytest.approx(7.0)
+
+
+def test_replacement_that_fails_to_start_is_rolled_back(system, tmp_path):
+    pkg = package_copy(tmp_path)
+
+    def break_filtered(data):
+        comp = next(c for c in data["components"] if c["name"] == "filtered")
+        comp["implementation"] = "rra_agent.nodes.generic.NoSuchNode"
+
+    edit_yaml(pkg / "system.yaml", break_filtered)
+    sys_ = system(pkg)
+    direct_pid = sys_.node(sys_.status, "direct")["pid"]
+    sys_.set_level(7.0)
+    sys_.wait(lambda s: any(isinstance(e, m.AdaptationEvent) and e.outcome == "rolled_back"
+                            for e in sys_.events()), "the rollback event")  # fmt: skip
+    st = sys_.wait(lambda s: sys_.node(s, "direct")["state"] == "RUNNING", "direct back")
+    assert st["engine"]["selection"] == ["Direct", "Path", "Tuning"]
+    assert "filtered" not in st["engine"]["running"]
+    assert sys_.node(st, "direct")["pid"] != direct_pid  # stop-then-start: it was restarted
+    failed = next(e for e in sys_.events()
+                  if isinstance(e, m.AdaptationEvent) and e.outcome == "rolled_back")  # fmt: skip
+    assert "filtered" in failed.message and failed.level == "error"
+
+
+def test_standby_replacement_is_prestarted_and_switched_by_activation(system, tmp_path):
+    pkg = package_copy(tmp_path)
+    edit_yaml(pkg / "runtime.yaml",
+              lambda d: d["replacement"].update(components={"filtered": "standby"}))  # fmt: skip
+    sys_ = system(pkg)
+    st = sys_.status
+    assert st["engine"]["standby"] == ["filtered"]
+    filtered_pid = sys_.node(st, "filtered")["pid"]
+    assert sys_.ctl("filtered", m.Describe()).result["active"] is False
+    sys_.set_level(7.0)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the standby switch")
+    assert sys_.node(st, "filtered")["pid"] == filtered_pid  # no process was started
+    assert sys_.ctl("filtered", m.Describe()).result["active"] is True
+    swap = next(e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+                and any("activate filtered" in p for p in e.plan))  # fmt: skip
+    assert not any(p.startswith("start ") for p in swap.plan)
+
+
+def test_random_bytes_on_every_key_crash_nothing(system):
+    sys_ = system()
+    session = sys_.client.session
+    junk = [b"", b"\x00", b"\xc1\xff", b"\x81\xa1t\xa3zzz", bytes(range(256)) * 4]
+    keys = [K.data("source/out"), K.data("direct/out"), K.ctx("Level"), K.selection,
+            K.events, K.inject("motor/2")]  # fmt: skip
+    for key in keys:
+        for payload in junk:
+            session.put(key, payload)
+    for key in [K.node_ctl("sink"), K.host_ctl("local"), K.engine_ctl("resolution")]:
+        for payload in junk:
+            list(session.get(key, payload=payload, timeout=2))
+    # Everything is still alive and still adapts.
+    sys_.set_level(8.0)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "adaptation after junk")
+    assert all(n.get("restarts", 0) == 0 for n in st["nodes"])
+    assert all(n["state"] in ("RUNNING", "STOPPED") for n in st["nodes"])
+    assert sys_.ctl("sink", m.Describe()).result["dropped"] >= 1
+    assert sys_.proc.poll() is None
+
+
+def test_ctrl_c_leaves_no_process_behind(system, procs):
+    sys_ = system()
+    st = sys_.gather()
+    pids = [n["pid"] for n in st["nodes"] if n.get("pid")]
+    assert len(pids) == 6  # three engines, three nodes
+    assert sys_.stop() == 0
+    from conftest import pid_alive
+
+    assert not [p for p in pids if pid_alive(p)]

@@ -1,0 +1,1053 @@
+"""The Adaptation Engine core (paper Sec. III-D): compiled rules evaluated one `tick` at a time.
+
+`Engine` compiles an `AdaptationModel` once into Python code objects (the evaluation units,
+a lone rule or a rule set in priority order, become straight-line code: one function per
+scheduled unit, one per run of every-tick units) and then, for each tick, takes the current
+measurements and produces the run-time feature selection and the values of the Continuous
+Variability attributes. Pure: no I/O, no clock (``now`` is a parameter).
+
+Semantics (docs/rules.md has the full text):
+
+- Conditions use Kleene logic. A measurement that was never received, or is older than its
+  ``max_age_ms``, is undefined, and so is every comparison or arithmetic that reads it (and
+  division by zero, overflow, a non-finite result). An ``if`` whose condition is undefined
+  fires no branch (not even ``else``); a ``set_attribute`` whose value is undefined leaves the
+  attribute as it was.
+- All conditions of a tick read the same inputs: this tick's measurements and the CV values
+  and selection of the previous tick. Fired actions are then applied in evaluation order: file
+  order, a rule set's rules from the lowest priority (highest number) to the highest. So the
+  later action wins: priority 1 inside a rule set, the rule written later between units.
+- Two opposing actions of different units in one tick yield a `ConflictRecord` (winner: the
+  later one). Within a rule set, priorities decide and no record is made.
+- Feature actions become `apply_requests` requests, so the selection stays valid; features
+  no rule touches keep their state; impossible requests are `Rejected` with the reason.
+  ``select_feature_from_variants_of`` activates the best selectable variant (`ranked_variants`).
+- ``set_attribute`` stores the requested value; the published value is it clamped into the
+  CV bounds and then into every active NFR that ``constrains`` the CV (on a selected feature;
+  ``min`` raises, ``max`` lowers, the ``max`` is applied last).
+- Scheduling: a rule without ``period`` runs every tick; ``period N ms`` at the first tick
+  at least N ms after its last run; ``period 0 ms`` on ticks where a measurement it reads is
+  new (its stamp changed, or it is named in ``changed``). A rule set runs as a whole when any
+  of its rules is due. Every rule runs on the first tick.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Collection, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from rra_agent.core.conflicts import (
+    ClaimKey,
+    action_claims,
+    feature_claims,
+    ranked_variants,
+    target_text,
+)
+from rra_agent.core.features import (
+    apply_requests,
+    check_selection,
+    complete_deployment,
+    default_runtime_selection,
+    selectable_runtime,
+)
+from rra_agent.errors import SelectionError
+from rra_agent.models.adaptation import (
+    Action,
+    Activate,
+    AdaptationModel,
+    Arith,
+    AttrValue,
+    Bool,
+    Bound,
+    Call,
+    Compare,
+    Const,
+    Deactivate,
+    Expr,
+    Logic,
+    Measure,
+    Neg,
+    Not,
+    Num,
+    Rule,
+    SelectVariant,
+    SetAttribute,
+    Str,
+    action_text,
+    measures_read,
+    walk,
+)
+from rra_agent.models.features import Constraint, FeatureModel, Span, refs
+
+__all__ = [
+    "ConflictRecord",
+    "Engine",
+    "FiredRule",
+    "Rejected",
+    "TickResult",
+]
+
+#: (value, stamp): a measurement sample as the engine receives it; stamps in seconds.
+Sample = tuple[Any, float]
+
+
+class FiredRule(msgspec.Struct, frozen=True, kw_only=True):
+    """An action that fired in a tick: the cause of an adaptation."""
+
+    rule: str
+    action: str
+    span: Span | None = None
+    ruleset: str | None = None
+    #: The measurements the conditions that led here and the action's value read.
+    reads: tuple[str, ...] = ()
+    #: For set_attribute: the value computed (before clamping).
+    value: float | None = None
+
+
+class Rejected(msgspec.Struct, frozen=True, kw_only=True):
+    """A fired action the engine could not honour, and why (the selection stayed valid)."""
+
+    rule: str
+    action: str
+    reason: str
+    span: Span | None = None
+
+
+class ConflictRecord(msgspec.Struct, frozen=True, kw_only=True):
+    """Opposing actions of two units fired in one tick; the later one (``winner``) applied."""
+
+    kind: str
+    target: str
+    winner: FiredRule
+    loser: FiredRule
+
+
+class TickResult(msgspec.Struct, kw_only=True):
+    """What one tick produced. ``selection`` holds run-time features only."""
+
+    now: float
+    selection: frozenset[str]
+    cv: dict[str, float]
+    #: Whether the selection or a CV value differs from the previous tick's.
+    changed: bool
+    fired: list[FiredRule] = []
+    rejected: list[Rejected] = []
+    conflicts: list[ConflictRecord] = []
+    #: Measurements the rules read that were missing or stale in this tick.
+    undefined: list[str] = []
+
+
+# ---- runtime helpers used by the generated code ------------------------------------------------
+_ERRS = (TypeError, ValueError, ArithmeticError)
+_isfinite = math.isfinite
+
+
+def _fin(x: float) -> float:
+    """``x`` if it is a finite number; raises (-> undefined) for None, inf and nan."""
+    if _isfinite(x):
+        return x
+    raise ValueError(x)
+
+
+def _fnum(x: Any) -> float:
+    """A finite float from a number or a numeric string; raises otherwise."""
+    v = float(x)
+    if _isfinite(v) and not isinstance(x, bool):
+        return v
+    raise ValueError(x)
+
+
+def _truth(x: Any) -> bool | None:
+    return x if x is True or x is False else None
+
+
+def _dyn(op: str, a: Any, b: Any) -> bool | None:
+    """Compare values of statically unknown type: numbers and numeric strings as numbers."""
+    if a is None or b is None:
+        return None
+    if isinstance(a, str) != isinstance(b, str):
+        try:
+            a, b = _fnum(a), _fnum(b)
+        except _ERRS:
+            return None
+    try:
+        return _COMPARE[op](a, b)
+    except TypeError:
+        return None
+
+
+_COMPARE: dict[str, Callable[[Any, Any], bool]] = {
+    "==": lambda a, b: a == b,
+    "!=": lambda a, b: a != b,
+    "<": lambda a, b: a < b,
+    "<=": lambda a, b: a <= b,
+    ">": lambda a, b: a > b,
+    ">=": lambda a, b: a >= b,
+}
+
+_RUNTIME: dict[str, Any] = {
+    "_ERRS": _ERRS,
+    "_fin": _fin,
+    "_fnum": _fnum,
+    "_num": _fnum,
+    "_truth": _truth,
+    "_dyn": _dyn,
+    "_pow": math.pow,
+    "_exp": math.exp,
+    "_log": math.log,
+    "_sqrt": math.sqrt,
+}
+
+
+# ---- measurement coercion ----------------------------------------------------------------
+def _as_float(v: Any) -> float | None:
+    if isinstance(v, bool):
+        return None
+    if isinstance(v, int | float):
+        return float(v) if _isfinite(v) else None
+    if isinstance(v, str):
+        try:
+            return _fnum(v)
+        except _ERRS:
+            return None
+    return None
+
+
+def _as_int(v: Any) -> int | None:
+    f = _as_float(v)
+    return int(f) if f is not None and f.is_integer() else None
+
+
+def _as_bool(v: Any) -> bool | None:
+    return v if isinstance(v, bool) else None
+
+
+def _as_str(v: Any) -> str | None:
+    return v if isinstance(v, str) else None
+
+
+def _as_any(v: Any) -> Any:
+    if isinstance(v, float) and not _isfinite(v):
+        return None
+    return v if isinstance(v, bool | int | float | str) else None
+
+
+_COERCE: dict[str | None, Callable[[Any], Any]] = {
+    "float": _as_float,
+    "int": _as_int,
+    "bool": _as_bool,
+    "str": _as_str,
+    None: _as_any,
+}
+
+
+# ---- compilation -------------------------------------------------------------------------------
+@dataclass(slots=True)
+class _ActionInfo:
+    """A compiled action: what it does, its report template and its contested claims."""
+
+    index: int
+    unit: int
+    branch: tuple[int, int]  # (rule number, branch number): same-branch conflicts
+    fired: FiredRule
+    kind: str  # activate | deactivate | set | reject
+    features: tuple[str, ...] = ()
+    cv: int = -1
+    reason: str = ""
+    claims: list[tuple[ClaimKey, str]] = field(default_factory=list)
+    requests: list[tuple[str, str]] = field(default_factory=list)
+
+
+@dataclass(slots=True)
+class _RuleSchedule:
+    period: float | None  # seconds; None: every tick
+    reads: tuple[int, ...]  # measurement slots
+    last: float | None = None
+
+
+@dataclass(slots=True)
+class _Unit:
+    name: str
+    rules: list[_RuleSchedule]
+    fn: Callable[..., None] | None = None  # None: runs every tick, inside a merged function
+
+    @property
+    def always(self) -> bool:
+        return any(r.period is None for r in self.rules)
+
+
+@dataclass(slots=True)
+class _Cv:
+    key: str
+    feature: str
+    attribute: str
+    lower: float | None
+    upper: float | None
+    nfr_min: list[tuple[str, float]]
+    nfr_max: list[tuple[str, float]]
+    initial: float | None
+
+
+class _Compiler:
+    """AdaptationModel -> Python source of one function per unit, plus the action table."""
+
+    def __init__(self, model: AdaptationModel, fm: FeatureModel, selectable: frozenset[str]):
+        self.fm, self.model, self.selectable = fm, model, selectable
+        self.slots: dict[str, int] = {}
+        self.types: dict[str, str | None] = {}
+        self.max_age: dict[str, float | None] = {}
+        self.cvs = _cv_table(fm)
+        self.cv_index = {(c.feature, c.attribute): i for i, c in enumerate(self.cvs)}
+        self.actions: list[_ActionInfo] = []
+        self.units: list[tuple[str, list[_RuleSchedule]]] = []
+        self.lines: list[str] = []
+        self.tmp = 0
+        self.rule_no = 0
+
+    def compile(self) -> tuple[list[_Unit], list[tuple[Callable[..., None], int]], str]:
+        """The units, the plan (function, unit index or -1 for every tick) and the source.
+
+        Consecutive units that run on every tick share one function (fewer calls per tick);
+        a scheduled unit gets its own, called when due.
+        """
+        bodies = []
+        for u, (ruleset, rules) in enumerate(self.model.units()):
+            start = len(self.lines)
+            self._unit(u, ruleset.name if ruleset else None, rules)
+            bodies.append(self.lines[start:])
+            del self.lines[start:]
+        units = [_Unit(name, schedules) for name, schedules in self.units]
+        plan_names: list[tuple[str, int]] = []
+        for u, unit in enumerate(units):
+            if unit.always and plan_names and plan_names[-1][1] < 0:
+                self.lines.extend(bodies[u])
+                continue
+            name = f"_g{u}" if unit.always else f"_u{u}"
+            plan_names.append((name, -1 if unit.always else u))
+            self.lines.append(f"def {name}(M, CV, out, V):")
+            self.lines.extend(bodies[u])
+        source = "\n".join(self.lines) + "\n"
+        namespace = dict(_RUNTIME)
+        exec(compile(source, f"<rules {self.model.source}>", "exec"), namespace)
+        plan = [(namespace[name], u) for name, u in plan_names]
+        for fn, u in plan:
+            if u >= 0:
+                units[u].fn = fn
+        _mark_contested(self.actions)
+        return units, plan, source
+
+    # measurement slots
+    def slot(self, m: Measure) -> int:
+        if m.name not in self.slots:
+            self.slots[m.name] = len(self.slots)
+            self.types[m.name] = m.type
+            self.max_age[m.name] = m.max_age_ms
+        return self.slots[m.name]
+
+    def emit(self, indent: int, text: str) -> None:
+        self.lines.append("    " * indent + text)
+
+    def temp(self) -> str:
+        self.tmp += 1
+        return f"_t{self.tmp}"
+
+    # units, rules, branches
+    def _unit(self, u: int, ruleset: str | None, rules: tuple[Rule, ...]) -> None:
+        self.tmp = 0
+        schedules = []
+        for rule in rules:
+            reads = [self.slot(m) for m in _rule_measures(rule)]
+            period = None if rule.period_ms is None else rule.period_ms / 1000.0
+            schedules.append(_RuleSchedule(period, tuple(reads)))
+            self.emit(1, f"# rule {rule.name}")
+            self._rule(u, ruleset, rule)
+        self.units.append((ruleset or rules[0].name, schedules))
+
+    def _rule(self, u: int, ruleset: str | None, rule: Rule) -> None:
+        self.rule_no += 1
+        branches = rule.branches
+        if len(branches) == 1 and branches[0].condition is None:
+            self._actions(1, u, ruleset, rule, 0, ())
+            return
+        self.emit(1, "while True:")
+        reads: tuple[str, ...] = ()
+        for b, branch in enumerate(branches):
+            if branch.condition is None:
+                self._actions(2, u, ruleset, rule, b, reads)
+                break
+            reads = tuple(dict.fromkeys((*reads, *measures_read(branch.condition))))
+            t = self.condition(2, branch.condition)
+            self.emit(2, f"if {t} is True:")
+            self._actions(3, u, ruleset, rule, b, reads)
+            self.emit(3, "break")
+            self.emit(2, f"if {t} is None:")
+            self.emit(3, "break")
+        self.emit(2, "break")
+
+    def _actions(
+        self,
+        indent: int,
+        u: int,
+        ruleset: str | None,
+        rule: Rule,
+        b: int,
+        reads: tuple[str, ...],
+    ) -> None:
+        for action in rule.branches[b].actions:
+            k = len(self.actions)
+            extra = measures_read(action.value) if isinstance(action, SetAttribute) else ()
+            fired = FiredRule(
+                rule=rule.name,
+                action=action_text(action),
+                span=action.span,
+                ruleset=ruleset,
+                reads=tuple(dict.fromkeys((*reads, *extra))),
+            )
+            self.actions.append(self._info(k, u, (self.rule_no, b), fired, action))
+            if isinstance(action, SetAttribute):
+                self._set(indent, k, action)
+            else:
+                self.emit(indent, f"out.append({k})")
+
+    def _info(
+        self, k: int, u: int, branch: tuple[int, int], fired: FiredRule, action: Action
+    ) -> _ActionInfo:
+        info = _ActionInfo(k, u, branch, fired, "activate")
+        claims = [c for group in action_claims(self.fm, action, str(k)) for c in group]
+        match action:
+            case Activate(features=fs):
+                info.features = tuple(f.name for f in fs)
+            case Deactivate(features=fs):
+                info.kind, info.features = "deactivate", tuple(f.name for f in fs)
+            case SelectVariant():
+                best = [v for v in ranked_variants(self.fm, action) if v in self.selectable]
+                if best:
+                    info.features = (best[0],)
+                    claims = feature_claims(self.fm, best[0], True)
+                else:
+                    info.kind = "reject"
+                    info.reason = (
+                        f"no variant of {action.point.name} with attribute {action.attribute} "
+                        f"is selectable with the deployment-time selection"
+                    )
+            case SetAttribute(target=t):
+                info.kind, info.cv = "set", self.cv_index[(t.feature, t.name)]
+        info.claims = claims
+        if info.kind in ("activate", "deactivate"):
+            info.requests = [(info.kind, f) for f in info.features]
+        return info
+
+    def _set(self, indent: int, k: int, action: SetAttribute) -> None:
+        code, _ty, _simple = self.value(action.value, numeric=True)
+        self.emit(indent, "try:")
+        self.emit(indent + 1, f"V[{k}] = _fnum({code})")
+        self.emit(indent, "except _ERRS:")
+        self.emit(indent + 1, "pass")
+        self.emit(indent, "else:")
+        self.emit(indent + 1, f"out.append({k})")
+
+    # conditions: straight-line code leaving True/False/None in a temporary
+    def condition(self, indent: int, expr: Expr) -> str:
+        match expr:
+            case Logic(op=op, left=a, right=b):
+                ta, tb = self.condition(indent, a), self.condition(indent, b)
+                t = self.temp()
+                decisive = "False" if op == "and" else "True"  # one such operand decides
+                other = "True" if op == "and" else "False"
+                self.emit(
+                    indent,
+                    f"{t} = {decisive} if {ta} is {decisive} or {tb} is {decisive} else "
+                    f"(None if {ta} is None or {tb} is None else {other})",
+                )
+                return t
+            case Not(operand=o):
+                to = self.condition(indent, o)
+                t = self.temp()
+                self.emit(indent, f"{t} = None if {to} is None else not {to}")
+                return t
+            case Compare():
+                return self._compare(indent, expr)
+        code, ty, _simple = self.value(expr, numeric=False)
+        t = self.temp()
+        self.emit(indent, f"{t} = {code}" if ty == "bool" else f"{t} = _truth({code})")
+        return t
+
+    def _compare(self, indent: int, cmp: Compare) -> str:
+        lc, lt, ls = self.value(cmp.left, numeric=False)
+        rc, rt, rs = self.value(cmp.right, numeric=False)
+        t = self.temp()
+        dynamic = "any" in (lt, rt)
+        if not ls:
+            lc = f"_fin({lc})"
+        if not rs:
+            rc = f"_fin({rc})"
+        sides = ((lc, _literal(cmp.left)), (rc, _literal(cmp.right)))
+        checks = [code for code, literal in sides if not literal]
+        if ls and rs:
+            if dynamic:
+                self.emit(indent, f"{t} = _dyn({cmp.op!r}, {lc}, {rc})")
+                return t
+            guard = " or ".join(f"{x} is None" for x in checks)
+            body = f"{lc} {cmp.op} {rc}"
+            self.emit(indent, f"{t} = None if {guard} else ({body})" if guard else f"{t} = {body}")
+            return t
+        self.emit(indent, "try:")
+        self.emit(indent + 1, f"_a = {lc}")
+        self.emit(indent + 1, f"_b = {rc}")
+        self.emit(indent, "except _ERRS:")
+        self.emit(indent + 1, f"{t} = None")
+        self.emit(indent, "else:")
+        if dynamic:
+            self.emit(indent + 1, f"{t} = _dyn({cmp.op!r}, _a, _b)")
+        else:
+            self.emit(indent + 1, f"{t} = None if _a is None or _b is None else (_a {cmp.op} _b)")
+        return t
+
+    # values: one Python expression; `simple` when it cannot raise (no arithmetic)
+    def value(self, expr: Expr, *, numeric: bool) -> tuple[str, str, bool]:
+        match expr:
+            case Num(value=v):
+                return repr(float(v)), "num", True
+            case Str(value=v):
+                return repr(v), "str", True
+            case Bool(value=v):
+                return repr(v), "bool", True
+            case Const(name=n):
+                return repr(math.e if n == "e" else math.pi), "num", True
+            case Measure(type=t):
+                code = f"M[{self.slot(expr)}]"
+                if t is None:
+                    return (f"_num({code})", "num", False) if numeric else (code, "any", True)
+                return code, _TYPES[t], True
+            case AttrValue(kind="cv", feature=f, attribute=a):
+                return f"CV[{self.cv_index[(f, a)]}]", "num", True
+            case AttrValue(feature=f, attribute=a):
+                value = self.fm.features[f].attribute(a).rra_value  # type: ignore[union-attr]
+                return _constant(value)
+            case Bound(feature=f, attribute=a, bound=b):
+                attr = self.fm.features[f].attribute(a)
+                bound = attr.lower if b == "min" else attr.upper  # type: ignore[union-attr]
+                return repr(float(bound)), "num", True  # type: ignore[arg-type]
+        return self._arith(expr), "num", False
+
+    def _arith(self, expr: Expr) -> str:
+        match expr:
+            case Neg(operand=o):
+                return f"(-{self.value(o, numeric=True)[0]})"
+            case Arith(op="^", left=Const(name="e"), right=b):
+                return f"_exp({self.value(b, numeric=True)[0]})"
+            case Arith(op="^", left=a, right=b):
+                return f"_pow({self.value(a, numeric=True)[0]}, {self.value(b, numeric=True)[0]})"
+            case Arith(op=op, left=a, right=b):
+                return f"({self.value(a, numeric=True)[0]} {op} {self.value(b, numeric=True)[0]})"
+            case Call(func=f, args=args):
+                codes = [self.value(a, numeric=True)[0] for a in args]
+                if f in ("min", "max") and len(codes) == 1:
+                    return f"({codes[0]})"
+                name = {"abs": "abs", "min": "min", "max": "max"}.get(f, f"_{f}")
+                return f"{name}({', '.join(codes)})"
+        raise TypeError(f"cannot compile {expr!r}")  # pragma: no cover - resolver guarantees
+
+
+_TYPES = {"float": "num", "int": "num", "str": "str", "bool": "bool"}
+
+
+def _literal(expr: Expr) -> bool:
+    return isinstance(expr, Num | Str | Bool | Const | Bound) or (
+        isinstance(expr, AttrValue) and expr.kind != "cv"
+    )
+
+
+def _constant(value: object) -> tuple[str, str, bool]:
+    if isinstance(value, bool):
+        return repr(value), "bool", True
+    if isinstance(value, int | float):
+        return repr(float(value)), "num", True
+    return repr(str(value)), "str", True
+
+
+def _rule_measures(rule: Rule) -> list[Measure]:
+    """The measurements a rule reads (conditions and values), in order of appearance."""
+    out: dict[str, Measure] = {}
+    for branch in rule.branches:
+        values = [a.value for a in branch.actions if isinstance(a, SetAttribute)]
+        for expr in (branch.condition, *values):
+            for node in walk(expr) if expr is not None else ():
+                if isinstance(node, Measure):
+                    out.setdefault(node.name, node)
+    return list(out.values())
+
+
+def _cv_table(fm: FeatureModel) -> list[_Cv]:
+    """Every CV attribute with its bounds and the NFRs that constrain it."""
+    found = [(fname, a) for fname, f in fm.features.items() for a in f.attributes if a.kind == "cv"]
+    counts: dict[str, int] = {}
+    for _, a in found:
+        counts[a.name] = counts.get(a.name, 0) + 1
+    out = []
+    for fname, a in found:
+        key = a.name if counts[a.name] == 1 else f"{fname}.{a.name}"
+        nfrs = [
+            (owner, n.tag, n.rra_value)
+            for owner, f in fm.features.items()
+            for n in f.attributes
+            if n.kind == "nfr" and n.constrains in (a.name, f"{fname}.{a.name}")
+            and isinstance(n.rra_value, int | float) and not isinstance(n.rra_value, bool)
+        ]  # fmt: skip
+        initial = a.rra_value
+        if not isinstance(initial, int | float) or isinstance(initial, bool):
+            initial = a.lower if a.lower is not None else a.upper
+        out.append(
+            _Cv(
+                key=key,
+                feature=fname,
+                attribute=a.name,
+                lower=a.lower,
+                upper=a.upper,
+                nfr_min=[(o, float(v)) for o, t, v in nfrs if t == "min"],  # type: ignore[arg-type]
+                nfr_max=[(o, float(v)) for o, t, v in nfrs if t == "max"],  # type: ignore[arg-type]
+                initial=None if initial is None else float(initial),
+            )
+        )
+    return out
+
+
+def _mark_contested(actions: list[_ActionInfo]) -> None:
+    """Keep only claims another unit (or the same branch) also makes: the rest cannot clash."""
+    claimants: dict[ClaimKey, list[_ActionInfo]] = {}
+    for info in actions:
+        for key, _ in info.claims:
+            claimants.setdefault(key, []).append(info)
+    for info in actions:
+        info.claims = [
+            (key, value)
+            for key, value in info.claims
+            if any(
+                other is not info and (other.unit != info.unit or other.branch == info.branch)
+                for other in claimants[key]
+            )
+        ]
+
+
+# ---- the engine ----------------------------------------------------------------------------------
+class Engine:
+    """Evaluates an Adaptation Model against measurements, one `tick` at a time.
+
+    ``deployment_selection`` may be partial; it is completed with `complete_deployment`. The
+    run-time selection starts at `default_runtime_selection` (or ``initial``). ``verify``
+    re-checks every new selection with `check_selection` (for tests and debugging; the
+    selection `apply_requests` returns is valid by construction).
+    """
+
+    def __init__(
+        self,
+        fm: FeatureModel,
+        deployment_selection: Collection[str],
+        model: AdaptationModel,
+        *,
+        initial: Collection[str] | None = None,
+        verify: bool = False,
+    ) -> None:
+        self.fm = fm
+        self.model = model
+        self.deployment = complete_deployment(fm, deployment_selection)
+        self.selectable = selectable_runtime(fm, self.deployment)
+        compiler = _Compiler(model, fm, self.selectable)
+        self._units, self._plan, self.source = compiler.compile()
+        self._timed = [[r for r in u.rules if r.period] for u in self._units]
+        slot_units: list[set[int]] = [set() for _ in compiler.slots]
+        for u, unit in enumerate(self._units):
+            for r in unit.rules:
+                if r.period == 0 and not unit.always:
+                    for i in r.reads:
+                        slot_units[i].add(u)
+        self._slot_units = [tuple(sorted(s)) for s in slot_units]
+        self._family = _families(fm)
+        self._leaf_group = _leaf_groups(fm)
+        self._free_leaf = _free_leaves(fm)
+        self.verify = verify
+        self._actions = compiler.actions
+        self._cvs = compiler.cvs
+        self._slot_names = list(compiler.slots)
+        self._slot_of = dict(compiler.slots)
+        self._slots = [
+            (name, _COERCE[compiler.types[name]], compiler.max_age[name])
+            for name in self._slot_names
+        ]
+        self._M: list[Any] = [None] * len(self._slots)
+        self._V: list[Any] = [None] * len(self._actions)
+        self._raw: list[Any] = [_UNSEEN] * len(self._slots)
+        self._stamps: list[Any] = [_UNSEEN] * len(self._slots)
+        self._requested: list[float | None] = [c.initial for c in self._cvs]
+        self._effective: list[float | None] = []
+        if initial is None:
+            self.selection = default_runtime_selection(fm, self.deployment)
+        else:
+            self.selection = frozenset(initial)
+            problems = check_selection(fm, self.deployment | self.selection)
+            if problems:
+                raise SelectionError(
+                    "the initial run-time selection is invalid", [p.message for p in problems]
+                )
+        self._effective = self._clamp_all(self.selection)
+        self._unavailable: dict[str, str] = {}
+        self.ticks = 0
+
+    @property
+    def cv(self) -> dict[str, float]:
+        return {c.key: v for c, v in zip(self._cvs, self._effective, strict=True) if v is not None}
+
+    def tick(
+        self, now: float, measurements: Mapping[str, Sample], *, changed: Collection[str] = ()
+    ) -> TickResult:
+        """Evaluate the due rules on ``measurements`` (name -> (value, stamp)) at ``now`` (s)."""
+        fresh = self._prepare(now, measurements, changed)
+        out: list[int] = []
+        cv_before = self._effective
+        first = self.ticks == 0
+        M, V, timed = self._M, self._V, self._timed
+        woken = {u for i in fresh for u in self._slot_units[i]}
+        for fn, u in self._plan:
+            if u < 0:
+                fn(M, cv_before, out, V)
+            elif first or u in woken or (timed[u] and _due(timed[u], now)):
+                for r in timed[u]:
+                    r.last = now
+                fn(M, cv_before, out, V)
+        self.ticks += 1
+        fired, rejected, conflicts, requests, sources = self._collect(out)
+        selection = self._select(requests, sources, fired, rejected)
+        self._effective = self._clamp_all(selection)
+        changed_any = selection != self.selection or self._effective != cv_before
+        self.selection = selection
+        undefined = [n for n, v in zip(self._slot_names, self._M, strict=True) if v is None]
+        return TickResult(
+            now=now,
+            selection=selection,
+            cv=self.cv,
+            changed=changed_any,
+            fired=fired,
+            rejected=rejected,
+            conflicts=conflicts,
+            undefined=undefined,
+        )
+
+    # steps of a tick
+    def _prepare(
+        self, now: float, measurements: Mapping[str, Sample], changed: Collection[str]
+    ) -> list[int]:
+        """Fill M with this tick's values (None: missing or stale); the slots that are new."""
+        M, raw, stamps = self._M, self._raw, self._stamps
+        fresh: list[int] = []
+        for i, (name, coerce, max_age) in enumerate(self._slots):
+            sample = measurements.get(name)
+            if sample is None:
+                M[i] = None
+                continue
+            value, stamp = sample
+            if stamp != stamps[i]:
+                stamps[i] = stamp
+                fresh.append(i)
+            if max_age is not None and not _recent(now, stamp, max_age):
+                M[i] = None
+            elif value is raw[i] and M[i] is not None:
+                pass
+            else:
+                raw[i] = value
+                M[i] = coerce(value)
+        for name in changed:
+            i = self._slot_of.get(name)
+            if i is not None:
+                fresh.append(i)
+        return fresh
+
+    def _collect(self, out: list[int]):
+        fired: list[FiredRule] = []
+        rejected: list[Rejected] = []
+        conflicts: list[ConflictRecord] = []
+        requests: list[tuple[str, str]] = []
+        sources: list[int] = []
+        owners: dict[ClaimKey, tuple[str, int, _ActionInfo]] = {}
+        requested = self._requested
+        V = self._V
+        actions = self._actions
+        for k in out:
+            info = actions[k]
+            position = len(fired)
+            if info.cv >= 0:
+                value = V[k]
+                requested[info.cv] = value
+                fired.append(msgspec.structs.replace(info.fired, value=value))
+            else:
+                fired.append(info.fired)
+            for key, value in info.claims:
+                previous = owners.get(key)
+                if previous is not None and previous[0] != value:
+                    self._conflict(key, previous, info, position, fired, conflicts)
+                owners[key] = (value, position, info)
+            if info.requests:
+                requests += info.requests
+                sources += [position] * len(info.requests)
+            elif info.reason:
+                rejected.append(_rejected(info.fired, info.reason))
+        return fired, rejected, conflicts, requests, sources
+
+    @staticmethod
+    def _conflict(
+        key: ClaimKey,
+        previous: tuple[str, int, _ActionInfo],
+        info: _ActionInfo,
+        position: int,
+        fired: list[FiredRule],
+        conflicts: list[ConflictRecord],
+    ) -> None:
+        """Record a clash of two fired actions (once per pair; not inside one rule set)."""
+        _, ppos, pinfo = previous
+        if ppos == position or (pinfo.unit == info.unit and pinfo.branch != info.branch):
+            return
+        for earlier in reversed(conflicts):  # one record per pair of actions
+            if earlier.winner is not fired[position]:
+                break
+            if earlier.loser is fired[ppos]:
+                return
+        conflicts.append(
+            ConflictRecord(
+                kind=_RECORD_KIND[key[0]],
+                target=target_text(key),
+                winner=fired[position],
+                loser=fired[ppos],
+            )
+        )
+
+    def _select(
+        self,
+        requests: list[tuple[str, str]],
+        sources: list[int],
+        fired: list[FiredRule],
+        rejected: list[Rejected],
+    ) -> frozenset[str]:
+        """Apply the feature requests; the selection stays valid (else the previous one)."""
+        current = self.selection
+        live: list[tuple[str, str]] = []
+        live_sources: list[int] = []
+        for (kind, f), src in zip(requests, sources, strict=True):
+            if kind == "activate" and f not in self.selectable:
+                rejected.append(_rejected(fired[src], self._why_unavailable(f)))
+            elif kind == "deactivate" and f not in self.selectable:
+                continue  # never selected under this deployment: nothing to do
+            else:
+                live.append((kind, f))
+                live_sources.append(src)
+        live, live_sources = self._reduce(live, live_sources, current)
+        if not live:
+            return current
+        selection, refused = apply_requests(self.fm, self.deployment, current, live)
+        for i, reason in refused:
+            rejected.append(_rejected(fired[live_sources[i]], reason))
+        if self.verify and selection != current:
+            problems = check_selection(self.fm, self.deployment | selection)
+            if problems:  # pragma: no cover - apply_requests keeps selections valid
+                reason = "; ".join(p.message for p in problems)
+                for src in dict.fromkeys(live_sources):
+                    rejected.append(_rejected(fired[src], f"invalid selection: {reason}"))
+                return current
+        return selection
+
+    def _reduce(
+        self, live: list[tuple[str, str]], sources: list[int], current: frozenset[str]
+    ) -> tuple[list[tuple[str, str]], list[int]]:
+        """Drop the requests that cannot change the outcome of `apply_requests`.
+
+        A request only changes features of its own family (`_families`). Within a family, a
+        request repeating the one before it is a no-op; and while a family has one surviving
+        request, which therefore runs on ``current``, a request that supersedes it
+        (`_supersedes`) replaces it: so a rule set's overridden defaults cost nothing. Then
+        every family whose remaining requests already hold in ``current`` is left out.
+        """
+        family, leaf_group, free = self._family, self._leaf_group, self._free_leaf
+        active = (current, self.deployment)
+        last: dict[object, int] = {}  # family -> its latest surviving request
+        alone: dict[object, bool] = {}  # ... and whether it is the family's only one
+        dropped: set[int] = set()
+        for i, (kind, f) in enumerate(live):
+            fam = family[f]
+            j = last.get(fam)
+            if j is None:
+                alone[fam] = True
+            elif live[j] == (kind, f):
+                dropped.add(i)
+                continue
+            elif alone[fam] and _supersedes((kind, f), live[j], leaf_group, free, active):
+                dropped.add(j)  # it ran on `current`, so the check above was exact
+            else:
+                alone[fam] = False
+            last[fam] = i
+        dirty = {
+            family[f]
+            for i, (kind, f) in enumerate(live)
+            if i not in dropped and (f in current) != (kind == "activate")
+        }
+        keep = [i for i, (_, f) in enumerate(live) if i not in dropped and family[f] in dirty]
+        return [live[i] for i in keep], [sources[i] for i in keep]
+
+    def _why_unavailable(self, feature: str) -> str:
+        reason = self._unavailable.get(feature)
+        if reason is None:
+            _, refused = apply_requests(
+                self.fm, self.deployment, self.selection, [("activate", feature)]
+            )
+            reason = refused[0][1] if refused else f"{feature} is not selectable"
+            self._unavailable[feature] = reason
+        return reason
+
+    def _clamp_all(self, selection: frozenset[str]) -> list[float | None]:
+        active = self.deployment | selection
+        return [_clamp(c, v, active) for c, v in zip(self._cvs, self._requested, strict=True)]
+
+
+_UNSEEN = object()
+_RECORD_KIND = {"feature": "feature", "group": "alternative", "attribute": "attribute"}
+
+
+def _families(fm: FeatureModel) -> dict[str, object]:
+    """Run-time features grouped so that requests in different groups cannot interact.
+
+    `apply_requests` changes the requested feature, its subtree, its run-time ancestors and
+    their siblings in groups with bounds; constraints only reject, never add. So a request
+    changes only its family: the topmost run-time ancestor T, or T's group when that group
+    has bounds between its children (alternative, or, cardinality); mandatory and optional
+    siblings of T never change. Whether a request is accepted also depends on the features
+    its constraints name, so families linked by a constraint are merged.
+    """
+    out: dict[str, object] = {}
+    for name in fm.features:
+        if fm.binding[name] != "runtime":
+            continue
+        top = name
+        while (p := fm.parent[top]) is not None and fm.binding[p] == "runtime":
+            top = p
+        group = fm.group_of.get(top)
+        independent = group is None or group.kind in ("mandatory", "optional")
+        out[name] = top if independent else ("group", fm.parent[top], id(group))
+    merged: dict[object, object] = {}
+
+    def find(x: object) -> object:
+        while merged.get(x, x) != x:
+            x = merged[x]
+        return x
+
+    for c in fm.constraints:
+        linked = {find(out[n]) for n in _constrained([c], fm) if n in out}
+        first, *rest = sorted(linked, key=repr) or [None]
+        for other in rest:
+            merged[other] = first
+    return {name: find(fam) for name, fam in out.items()}
+
+
+def _constrained(constraints: Iterable[Constraint], fm: FeatureModel) -> set[str]:
+    """The features the given cross-tree constraints name (canonical names)."""
+    return {
+        name
+        for c in constraints
+        for r in refs(c.expr)
+        if (name := fm.resolve_name(r.name)) is not None
+    }
+
+
+def _leaf_groups(fm: FeatureModel) -> dict[str, tuple[int, str]]:
+    """Run-time leaves of exclusive (alternative, at-most-one) groups none of whose members a
+    constraint names (so switching among them is never rejected): (group id, parent)."""
+    constrained = _constrained(fm.constraints, fm)
+    out: dict[str, tuple[int, str]] = {}
+    for name, feature in fm.features.items():
+        group, parent = fm.group_of.get(name), fm.parent[name]
+        if fm.binding[name] != "runtime" or feature.groups or group is None or parent is None:
+            continue
+        exclusive = group.kind == "alternative" or (
+            group.kind == "cardinality" and group.upper == 1
+        )
+        if exclusive and not any(c.name in constrained for c in group.children):
+            out[name] = (id(group), parent)
+    return out
+
+
+def _free_leaves(fm: FeatureModel) -> dict[str, str]:
+    """Run-time leaves of optional groups that no constraint names -> their parent (so
+    (de)activating them under a selected parent is never rejected)."""
+    constrained = _constrained(fm.constraints, fm)
+    return {
+        name: fm.parent[name]  # type: ignore[misc]
+        for name, feature in fm.features.items()
+        if fm.binding[name] == "runtime"
+        and not feature.groups
+        and name not in constrained
+        and (g := fm.group_of.get(name)) is not None
+        and g.kind == "optional"
+    }
+
+
+def _supersedes(
+    request: tuple[str, str],
+    earlier: tuple[str, str],
+    leaf_group: dict[str, tuple[int, str]],
+    free: dict[str, str],
+    active: tuple[frozenset[str], frozenset[str]],
+) -> bool:
+    """Whether ``request`` makes ``earlier`` (the one before it, run on the current state)
+    irrelevant to the final selection.
+
+    Both act on unconstrained leaves under a selected parent, so neither selects ancestors,
+    completes subtrees or can be rejected: ``activate A; activate B`` on leaves of one
+    exclusive group ends exactly as ``activate B``, and a request on a leaf of an optional
+    group is undone or repeated by a later one on the same leaf.
+    """
+    (kind, f), (pkind, pf) = request, earlier
+    runtime, deployment = active
+    if f == pf:
+        parent = free.get(f)
+        return parent is not None and (parent in runtime or parent in deployment)
+    g = leaf_group.get(f)
+    return (
+        kind == pkind == "activate"
+        and g is not None
+        and g == leaf_group.get(pf)
+        and (g[1] in runtime or g[1] in deployment)
+    )
+
+
+def _recent(now: float, stamp: Any, max_age_ms: float) -> bool:
+    """Whether a sample stamped ``stamp`` (s) is at most ``max_age_ms`` old at ``now``."""
+    try:
+        return (now - stamp) * 1000.0 <= max_age_ms
+    except TypeError:  # not a time: treat the sample as unusable
+        return False
+
+
+def _rejected(report: FiredRule, reason: str) -> Rejected:
+    return Rejected(rule=report.rule, action=report.action, reason=reason, span=report.span)
+
+
+def _due(timed: list[_RuleSchedule], now: float) -> bool:
+    """Whether a rule with ``period N ms`` (N > 0) is due: N ms after its last run."""
+    return any(r.last is None or now - r.last >= r.period - 1e-9 for r in timed)  # type: ignore[operator]
+
+
+def _clamp(cv: _Cv, value: float | None, active: frozenset[str]) -> float | None:
+    """A CV value clamped into its bounds, then into the NFRs of the selected features."""
+    if value is None:
+        return None
+    if cv.lower is not None and value < cv.lower:
+        value = cv.lower
+    if cv.upper is not None and value > cv.upper:
+        value = cv.upper
+    for owner, limit in cv.nfr_min:
+        if owner in active and value < limit:
+            value = limit
+    for owner, limit in cv.nfr_max:
+        if owner in active and value > limit:
+            value = limit
+    return value

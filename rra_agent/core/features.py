@@ -577,6 +577,9 @@ def _explain(idx: _Index, val: list[Tri], free: Sequence[int]) -> list[str]:
 # ---- per deployment selection -------------------------------------------------------------
 
 
+_VALID_CACHE = 256
+
+
 @dataclass
 class _Context:
     """What a deployment-time selection fixes, and what follows from it (computed lazily)."""
@@ -589,9 +592,19 @@ class _Context:
     _selectable: frozenset[int] | None = None
     _default: frozenset[int] | SelectionError | None = None
     free_set: frozenset[int] = field(init=False)
+    #: Run-time selections (canonical names) known to be valid under this deployment.
+    _valid: dict[frozenset[str], None] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.free_set = frozenset(self.free)
+
+    def known_valid(self, selection: frozenset[str]) -> bool:
+        return selection in self._valid
+
+    def remember_valid(self, selection: frozenset[str]) -> None:
+        if len(self._valid) >= _VALID_CACHE:
+            self._valid.pop(next(iter(self._valid)))  # forget the oldest
+        self._valid[selection] = None
 
     @property
     def selectable(self) -> frozenset[int]:
@@ -872,7 +885,9 @@ def apply_requests(
         idx, _names(previous, "a run-time selection"), "runtime", "a run-time selection"
     ):
         cur[v] = True
-    valid = not _violations(idx, cur)
+    # The engine passes back what the last call returned: a selection known to be valid
+    # needs no full re-check (which costs time linear in the model on every tick).
+    valid = ctx.known_valid(frozenset(previous)) or not _violations(idx, cur)
     rejected: list[tuple[int, str]] = []
     for i, (action, name) in enumerate(requests):
         outcome = _request(ctx, cur, action, name)
@@ -889,7 +904,10 @@ def apply_requests(
             rejected.append((i, f"cannot {action} {_canonical(idx, name)}: {reasons}{hint}"))
         else:
             cur, valid = work, True
-    return frozenset(idx.names[v] for v in range(len(cur)) if cur[v] and idx.runtime[v]), rejected
+    result = frozenset(idx.names[v] for v in range(len(cur)) if cur[v] and idx.runtime[v])
+    if valid:
+        ctx.remember_valid(result)
+    return result, rejected
 
 
 def _canonical(idx: _Index, name: str) -> str:

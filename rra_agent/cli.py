@@ -156,6 +156,31 @@ def render_system(system: SystemModel, fmt: str, note: str | None = None) -> str
 
 
 # ---- the command table and main ----------------------------------------------------------
+# ---- rra check ---------------------------------------------------------------------------
+def _configure_check(p: argparse.ArgumentParser) -> None:
+    p.add_argument("package", metavar="PKG", help="system package folder (or its rra.yaml)")
+
+
+def _run_check(args: argparse.Namespace) -> int:
+    """Pairs of rules outside one rule set that can fire together with opposite effects."""
+    from rra_agent.core.conflicts import check_conflicts
+
+    pkg = load_package(args.package)
+    if pkg.adaptation is None:
+        print(f"{args.package}: no adaptation model to check")
+        return 0
+    conflicts = check_conflicts(pkg.adaptation, pkg.features)
+    for c in conflicts:
+        print(c.render())
+    certain = sum(c.certain for c in conflicts)
+    print(
+        f"{args.package}: {certain} conflict(s), {len(conflicts) - certain} possible "
+        "conflict(s) the analysis could not rule out",
+        file=sys.stderr,
+    )
+    return 1 if certain else 0
+
+
 COMMANDS: dict[str, Command] = {
     "validate": Command(
         "check every model of a package and their cross-references",
@@ -166,6 +191,11 @@ COMMANDS: dict[str, Command] = {
         "print the Deployment-time Configured System Model for a feature selection",
         _configure_resolve,
         _run_resolve,
+    ),
+    "check": Command(
+        "static conflict analysis of the adaptation rules (exit 1 on a certain conflict)",
+        _configure_check,
+        _run_check,
     ),
     "up": Command(
         "run a system on this machine until Ctrl-C (engines and nodes as Zenoh peers)",

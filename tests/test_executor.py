@@ -8,7 +8,8 @@ from typing import Any
 import msgspec
 import pytest
 
-from rra_agent.agents.executor import Executor, StepFailed, spec_for
+from rra_agent.agents.executor import Ctl, Executor, StepFailed, spec_for
+from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.core import resolution as r
@@ -24,6 +25,7 @@ K = Keys("quadcopter")
 class FakeActuator:
     def __init__(self) -> None:
         self.calls: list[tuple] = []
+        self.batches: list[int] = []
         self.fail_on: set[tuple[str, str]] = set()
         self.states: dict[str, Any] = {"controller": {"integral": 1.5}}
 
@@ -40,21 +42,32 @@ class FakeActuator:
         for s in specs:
             self._do("stop", s.name)
 
-    def set_params(self, spec, values):
-        self._do("params", spec.name, dict(values))
-
-    def rewire(self, spec, port, keys):
-        self._do("rewire", spec.name, port, tuple(keys))
-
-    def set_active(self, spec, active):
-        self._do("active", spec.name, active)
-
-    def export_state(self, spec):
-        self._do("export", spec.name)
-        return self.states.get(spec.name)
-
-    def import_state(self, spec, state):
-        self._do("import", spec.name, state)
+    def control(self, batch: list[Ctl]) -> list[m.Reply]:
+        self.batches.append(len(batch))
+        replies: list[m.Reply] = []
+        for c in batch:
+            name = c.spec.name
+            match c.request:
+                case m.SetParams(params=p):
+                    call = ("params", name, dict(p))
+                case m.Rewire(port=port, keys=keys):
+                    call = ("rewire", name, port, tuple(keys))
+                case m.Activate() | m.Deactivate():
+                    call = ("active", name, isinstance(c.request, m.Activate))
+                case m.ExportState():
+                    call = ("export", name)
+                case m.ImportState(state=st):
+                    call = ("import", name, st)
+                case _:
+                    raise AssertionError(c.request)
+            self.calls.append(call)
+            if (call[0], name) in self.fail_on:
+                replies.append(m.Err(message=f"{call[0]} {name} failed", code="refused"))
+            elif call[0] == "export":
+                replies.append(m.Ok(result=self.states.get(name)))
+            else:
+                replies.append(m.Ok())
+        return replies
 
 
 @pytest.fixture(scope="module")
@@ -227,3 +240,19 @@ def test_parameters_and_their_rollback():
     act.fail_on = set()
     assert ex.execute(r.diff(sysm, tgt)).ok
     assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 5}
+
+
+def test_standby_switch_is_one_concurrent_batch_and_the_host_learns_new_specs(quad):
+    _, target = quad
+    ex, act = make("standby", transfer=False)
+    deploy(ex, act, target("Standard"))
+    swap = swap_plan(target).steps[0]
+    pre = spec_for(K, swap.definition, dict(swap.inputs), dict(swap.outputs), default_host="l")
+    ex.prestart_standby([pre])
+    act.calls.clear()
+    act.batches.clear()
+    assert ex.execute(swap_plan(target)).ok
+    # activate proploss + deactivate controller + rewire the simulator: one round trip
+    assert act.batches == [3]
+    sim = ex.running["vehicle_simulator"]
+    assert sim.ports["motor_cmd"].keys == [K.data("proploss_controller/motor_cmd")]

@@ -11,9 +11,10 @@ its request, so an old RUNNING or STOPPED of an earlier instance is never mistak
 new one. A node that backs off or goes FATAL while starting fails the step at once (the
 plan then rolls back) instead of waiting for the timeout.
 
-Parameters, rewiring, activation and state go straight to the node's control queryable; the
-host agent is told the new spec asynchronously (``UpdateSpec``) so a restart after a crash
-comes back with the current wiring and parameters, without slowing the switch down.
+Parameters, rewiring, activation and state go straight to the nodes' control queryables, a
+whole batch in flight at once; the host agent is told the new spec asynchronously
+(``UpdateSpec``) so a restart after a crash comes back with the current wiring and
+parameters, without slowing the switch down.
 """
 
 from __future__ import annotations
@@ -26,13 +27,14 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent.agents.executor import StepFailed
+from rra_agent.agents.executor import Ctl, StepFailed
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.bus.keys import Keys
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _ANY = m.Codec[Any](Any)
+_REPLY = m.Codec[m.Reply](m.Reply)
 TERMINAL = frozenset({"STOPPED", "EXITED", "FATAL"})
 
 
@@ -173,33 +175,40 @@ class ZenohActuator:
             what="stop",
         )
 
-    def set_params(self, spec: m.NodeSpec, values: dict[str, Any]) -> None:
-        self._control(spec, m.SetParams(params=values))
-        self._update(msgspec.structs.replace(spec, params={**spec.params, **values}))
+    def control(self, batch: list[Ctl]) -> list[m.Reply]:
+        """All requests in flight at once (each get returns at once; then drain the replies),
+        so a batch costs about one round trip. Successful spec changes are forwarded to the
+        host agents without waiting."""
+        handlers = [
+            self.session.get(
+                self.keys.node_ctl(c.spec.name),
+                payload=_ANY.encode(c.request),
+                timeout=self.request_timeout,
+            )
+            for c in batch
+        ]
+        replies = [self._first_reply(h, c) for h, c in zip(handlers, batch, strict=True)]
+        for c, rep in zip(batch, replies, strict=True):
+            if isinstance(rep, m.Ok) and c.after is not None:
+                self._update(c.after)
+        return replies
 
-    def rewire(self, spec: m.NodeSpec, port: str, keys: list[str]) -> None:
-        self._control(spec, m.Rewire(port=port, keys=keys))
-        ports = dict(spec.ports)
-        ports[port] = msgspec.structs.replace(ports[port], keys=keys)
-        self._update(msgspec.structs.replace(spec, ports=ports))
-
-    def set_active(self, spec: m.NodeSpec, active: bool) -> None:
-        self._control(spec, m.Activate() if active else m.Deactivate())
-        self._update(msgspec.structs.replace(spec, active=active))
-
-    def export_state(self, spec: m.NodeSpec) -> Any:
-        return self._control(spec, m.ExportState())
-
-    def import_state(self, spec: m.NodeSpec, state: Any) -> None:
-        self._control(spec, m.ImportState(state=state))
-
-    # ---- helpers -----------------------------------------------------------------------
-    def _control(self, spec: m.NodeSpec, request: m.NodeRequest) -> Any:
-        try:
-            reply = self.client.node(spec.name, request, self.request_timeout)
-        except NoReply as e:
-            raise StepFailed(str(e)) from None
-        return self._ok(reply, f"{request.__struct_config__.tag} {spec.name}")
+    def _first_reply(self, handler: Any, c: Ctl) -> m.Reply:
+        out: m.Reply | None = None
+        for reply in handler:  # ends when the query is complete (or timed out)
+            if out is not None:
+                continue
+            if reply.ok is not None:
+                try:
+                    out = _REPLY.decode(reply.ok.payload.to_bytes())
+                except (msgspec.DecodeError, msgspec.ValidationError) as e:
+                    out = m.Err(message=f"malformed reply: {e}", code="malformed")
+            elif reply.err is not None:
+                out = m.Err(message=reply.err.payload.to_string(), code="zenoh")
+        return out or m.Err(
+            message=f"no reply from node {c.spec.name} within {self.request_timeout:g} s",
+            code="no_reply",
+        )
 
     def _host(self, spec: m.NodeSpec, request: m.HostRequest, what: str) -> Any:
         reply = self.client.host(spec.host, request, self.request_timeout)

@@ -6,26 +6,25 @@ bus, or a fake in unit tests). Every action that changed the running system is r
 with its inverse; if a step fails (a node not ready in time, a control request refused),
 the inverses run in reverse order and the system is back in its previous configuration.
 
-Order of execution (from the plan's canonical order):
+Phases (from the plan's canonical order). Independent actions of a phase go out together
+as one batch — all starts, all stops, all control requests of the switch — so a phase costs
+about one round trip (or one process start), not one per node:
 
-1. new components start, all at once, and are waited for together;
-2. swaps, each with the replacement strategy of the Run-time Resolution Model for the
-   component swapped in:
-   - ``stop-then-start``: stop the old node, start the new one;
-   - ``start-then-stop`` (make before break): start the new node inactive, wait until it is
-     ready, transfer state, activate it, deactivate the old one (stopped in phase 5);
-   - ``standby``: the new node is already running inactive (pre-started at deployment);
-     switching is transfer state, activate it, deactivate the old one (stopped in phase 5,
-     or kept as a standby itself when its own strategy is ``standby``);
-3. restarts (`SetImplementation`): stop, then start with the new definition (a node's name is
-   its identity on the bus, so old and new cannot overlap);
-4. parameter changes, then rewires (subscribers of swapped or restarted peers included);
-5. components that go stop, all at once, with the nodes swapped out by ``start-then-stop``
-   and ``standby`` (an inactive old node publishes nothing, so stopping it last costs the
-   switch nothing).
-
-State transfer (`Replacement.state_transfer`): the old node's exported state is handed to
-the new one (import_state on a running node, or in the spec of a node being started).
+1. **start** the new components;
+2. **prepare** the swaps, per the replacement strategy of the component swapped in:
+   ``stop-then-start`` stops the old node (its state exported first) and starts the new one;
+   ``start-then-stop`` (make before break) starts the new one inactive; ``standby`` finds it
+   already running inactive (pre-started at deployment; if it is not, make before break);
+   restarts (`SetImplementation`) stop and start again (a name is a node's identity on the
+   bus, so old and new cannot overlap);
+3. **state transfer** for make-before-break and standby swaps: export from the old nodes,
+   import into the new ones;
+4. **switch**, one batch: activate the new nodes, deactivate the old ones, set parameters,
+   rewire subscribers (of swapped peers, of standby nodes' own inputs, and the plan's
+   `Rewire` steps);
+5. **stop** the components that go, with the swapped-out nodes (an inactive node publishes
+   nothing, so stopping it last costs the switch nothing), unless a swapped-out node's own
+   strategy is ``standby``: then it stays, inactive, for the way back.
 """
 
 from __future__ import annotations
@@ -37,6 +36,7 @@ from typing import Any, Protocol
 
 import msgspec
 
+from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.messages import NodeSpec, PortSpec
 from rra_agent.core import resolution as r
@@ -53,22 +53,36 @@ class Actuator(Protocol):
     """What the executor needs from the running system."""
 
     def start(self, specs: list[NodeSpec]) -> None:
-        """Start the nodes and return once all are ready; raise StepFailed otherwise."""
+        """Start the nodes and return once all are ready; raise StepFailed otherwise (after
+        stopping those of them that did start)."""
         ...
 
     def stop(self, nodes: list[NodeSpec]) -> None:
         """Stop the nodes and return once all are gone; raise StepFailed otherwise."""
         ...
 
-    def set_params(self, spec: NodeSpec, values: dict[str, Any]) -> None: ...
+    def control(self, batch: list[Ctl]) -> list[m.Reply]:
+        """Send every request of the batch at once; one reply per request, in order.
 
-    def rewire(self, spec: NodeSpec, port: str, keys: list[str]) -> None: ...
+        A node that does not answer in time yields an `Err`; nothing is raised."""
+        ...
 
-    def set_active(self, spec: NodeSpec, active: bool) -> None: ...
 
-    def export_state(self, spec: NodeSpec) -> Any: ...
+@dataclass(frozen=True)
+class Ctl:
+    """One control request: the node's spec before and after it, and its inverse."""
 
-    def import_state(self, spec: NodeSpec, state: Any) -> None: ...
+    spec: NodeSpec
+    request: m.NodeRequest
+    after: NodeSpec | None = None
+    inverse: m.NodeRequest | None = None
+
+    @property
+    def label(self) -> str:
+        match self.request:
+            case m.Rewire(port=port):
+                return f"rewire {port} of {self.spec.name}"
+        return f"{self.request.__struct_config__.tag} {self.spec.name}"
 
 
 @dataclass
@@ -94,7 +108,7 @@ class Outcome:
     rolled_back: bool = False
     rollback_error: str = ""
     seconds: float = 0.0
-    #: Time from the start of execution until the first swapped-in node was active.
+    #: Time from the start of execution until the swapped-in nodes were switched to.
     first_switch: float | None = None
 
 
@@ -131,6 +145,10 @@ def spec_for(
     )
 
 
+def _names(specs: list[NodeSpec]) -> str:
+    return ",".join(s.name for s in specs)
+
+
 class Transaction:
     """Runs actions, remembers how to undo each, and undoes them all on failure."""
 
@@ -163,6 +181,14 @@ class Transaction:
         return first
 
 
+@dataclass
+class _Swap:
+    step: r.SwapComponent
+    old: NodeSpec
+    new: NodeSpec
+    strategy: str
+
+
 class Executor:
     """Holds the running nodes' specs and applies plans to them."""
 
@@ -193,12 +219,7 @@ class Executor:
         t0 = self.clock()
         try:
             if specs:
-                tx.run(
-                    "prestart",
-                    ",".join(s.name for s in specs),
-                    lambda: self.actuator.start(specs),
-                    None,
-                )
+                tx.run("prestart", _names(specs), lambda: self.actuator.start(specs), None)
         except StepFailed as e:
             return Outcome(False, tx.records, str(e), seconds=self.clock() - t0)
         for s in specs:
@@ -208,10 +229,8 @@ class Executor:
     def execute(self, plan: r.Plan) -> Outcome:
         t0 = self.clock()
         tx = Transaction(self.clock)
-        running_before = dict(self.running)
-        standby_before = dict(self.standby)
-        self._first_switch: float | None = None
-        self._retired: list[NodeSpec] = []
+        running_before, standby_before = dict(self.running), dict(self.standby)
+        self._switched: float | None = None
         try:
             self._apply(plan, tx)
         except StepFailed as e:
@@ -225,154 +244,217 @@ class Executor:
                 rollback_error=rollback_error,
                 seconds=self.clock() - t0,
             )
-        first = None if self._first_switch is None else self._first_switch - t0
+        first = None if self._switched is None else self._switched - t0
         return Outcome(True, tx.records, seconds=self.clock() - t0, first_switch=first)
 
-    # ---- plan phases -------------------------------------------------------------------
+    # ---- the phases --------------------------------------------------------------------
     def _apply(self, plan: r.Plan, tx: Transaction) -> None:
         steps = plan.steps
-        starts = [s for s in steps if isinstance(s, r.StartComponent)]
+        starts = [self._spec(s) for s in steps if isinstance(s, r.StartComponent)]
         if starts:
-            specs = [self._spec(s.definition, s.inputs, s.outputs) for s in starts]
-            self._start(tx, specs)
-        for s in steps:
-            if isinstance(s, r.SwapComponent):
-                self._swap(tx, s)
-        for s in steps:
-            if isinstance(s, r.SetImplementation):
-                self._restart(tx, s)
-        for s in steps:
-            if isinstance(s, r.SetParameters):
-                self._set_params(tx, s.component, dict(s.values))
-        for s in steps:
-            if isinstance(s, r.Rewire):
-                self._rewire(tx, s.component, s.port, [self.keys.data(t) for t in s.topics])
+            self._start(tx, starts)
+        swaps = [self._plan_swap(s) for s in steps if isinstance(s, r.SwapComponent)]
+        restarts = [s for s in steps if isinstance(s, r.SetImplementation)]
+        self._prepare(tx, swaps, restarts)
+        warm = [w for w in swaps if w.strategy != "stop-then-start"]
+        self._transfer_state(tx, warm)
+        self._switch(tx, warm, steps)
+        retire = [w for w in warm if self.replacement.strategy_for(w.old.name) != "standby"]
         stops = [self.running[s.component] for s in steps if isinstance(s, r.StopComponent)]
-        stops += [self.running[spec.name] for spec in self._retired]
+        stops += [self.running[w.old.name] for w in retire]
+        for w in warm:  # a swapped-out standby node stays, inactive, for the way back
+            if w not in retire:
+                self.standby[w.old.name] = self.running.pop(w.old.name)
         if stops:
             self._stop(tx, stops)
 
-    def _spec(self, c: Component, inputs, outputs, *, active=True, state=None) -> NodeSpec:
+    def _spec(self, s: r.StartComponent | r.SwapComponent | r.SetImplementation, **kw: Any):
         return spec_for(
             self.keys,
-            c,
-            dict(inputs),
-            dict(outputs),
+            s.definition,
+            dict(s.inputs),
+            dict(s.outputs),
             default_host=self.default_host,
-            active=active,
-            state=state,
+            **kw,
         )
 
-    # ---- actions (each with its inverse) -----------------------------------------------
-    def _start(self, tx: Transaction, specs: list[NodeSpec]) -> None:
-        names = ",".join(s.name for s in specs)
+    def _plan_swap(self, s: r.SwapComponent) -> _Swap:
+        strategy = self.replacement.strategy_for(s.replacement)
+        if strategy == "standby" and s.replacement not in self.standby:
+            strategy = "start-then-stop"  # nothing pre-started: make before break
+        new = self.standby.get(s.replacement) if strategy == "standby" else None
+        if new is None:
+            new = self._spec(s, active=strategy == "stop-then-start")
+        return _Swap(s, self.running[s.component], new, strategy)
 
+    def _prepare(self, tx: Transaction, swaps: list[_Swap], restarts) -> None:
+        cold = [w for w in swaps if w.strategy == "stop-then-start"]
+        if cold:
+            states = self._export(tx, cold)
+            self._stop(tx, [w.old for w in cold])
+            news = [
+                msgspec.structs.replace(w.new, state=st) for w, st in zip(cold, states, strict=True)
+            ]
+            self._start(tx, news)
+            self._switched = self.clock()
+        mbb = [w.new for w in swaps if w.strategy == "start-then-stop"]
+        if mbb:
+            self._start(tx, mbb)
+        for w in swaps:
+            if w.strategy == "standby":
+                self.running[w.new.name] = self.standby.pop(w.new.name)
+        if restarts:
+            self._stop(tx, [self.running[s.component] for s in restarts])
+            self._start(tx, [self._spec(s) for s in restarts])
+
+    def _export(self, tx: Transaction, swaps: list[_Swap]) -> list[Any]:
+        """Exported state of each old node whose replacement wants it (None otherwise)."""
+        wanted = [w for w in swaps if self._wants_state(w)]
+        states: dict[str, Any] = {}
+        if wanted:
+            batch = [Ctl(w.old, m.ExportState()) for w in wanted]
+            replies = tx.run(
+                "export_state", _names([w.old for w in wanted]), lambda: self._ok(batch), None
+            )
+            states = {w.new.name: rep for w, rep in zip(wanted, replies, strict=True)}
+        return [states.get(w.new.name) for w in swaps]
+
+    def _wants_state(self, w: _Swap) -> bool:
+        return any(
+            t.source == w.old.name and t.target == w.new.name
+            for t in self.replacement.state_transfer
+        )
+
+    def _transfer_state(self, tx: Transaction, warm: list[_Swap]) -> None:
+        states = self._export(tx, warm)
+        batch = [
+            Ctl(w.new, m.ImportState(state=st))
+            for w, st in zip(warm, states, strict=True)
+            if st is not None
+        ]
+        if batch:
+            tx.run("import_state", _names([c.spec for c in batch]), lambda: self._ok(batch), None)
+
+    def _switch(self, tx: Transaction, warm: list[_Swap], steps) -> None:
+        batch: list[Ctl] = []
+        for w in warm:
+            new = self.running[w.new.name]
+            batch += self._rewires(
+                new, {p: [self.keys.data(t) for t in ts] for p, ts in w.step.inputs.items()}
+            )
+            batch.append(self._activation(self.running[w.new.name], True))
+            batch.append(self._activation(self.running[w.old.name], False))
+        for s in steps:
+            if isinstance(s, r.SetParameters):
+                spec = self.running[s.component]
+                old = {k: spec.params.get(k) for k in s.values}
+                after = msgspec.structs.replace(spec, params={**spec.params, **s.values})
+                batch.append(
+                    Ctl(spec, m.SetParams(params=dict(s.values)), after, m.SetParams(params=old))
+                )
+            elif isinstance(s, r.Rewire):
+                spec = self.running[s.component]
+                batch += self._rewires(spec, {s.port: [self.keys.data(t) for t in s.topics]})
+        batch = self._merge(batch)
+        if not batch:
+            return
+        self._control(tx, "switch", batch)
+        if warm:
+            self._switched = self.clock()
+
+    def _activation(self, spec: NodeSpec, active: bool) -> Ctl:
+        req = m.Activate() if active else m.Deactivate()
+        inv = m.Deactivate() if active else m.Activate()
+        return Ctl(spec, req, msgspec.structs.replace(spec, active=active), inv)
+
+    @staticmethod
+    def _rewires(spec: NodeSpec, wiring: dict[str, list[str]]) -> list[Ctl]:
+        out = []
+        for port, keys in wiring.items():
+            old = list(spec.ports[port].keys)
+            if old == keys:
+                continue
+            ports = dict(spec.ports)
+            ports[port] = msgspec.structs.replace(ports[port], keys=keys)
+            after = msgspec.structs.replace(spec, ports=ports)
+            out.append(
+                Ctl(spec, m.Rewire(port=port, keys=keys), after, m.Rewire(port=port, keys=old))
+            )
+        return out
+
+    @staticmethod
+    def _merge(batch: list[Ctl]) -> list[Ctl]:
+        """Several requests to one node: chain their ``after`` specs so the last is complete."""
+        latest: dict[str, NodeSpec] = {}
+        out = []
+        for c in batch:
+            base = latest.get(c.spec.name)
+            if base is not None and c.after is not None:
+                after = _apply_request(base, c.request)
+                c = Ctl(base, c.request, after, c.inverse)
+            if c.after is not None:
+                latest[c.spec.name] = c.after
+            out.append(c)
+        return out
+
+    # ---- actions with their inverses ---------------------------------------------------
+    def _start(self, tx: Transaction, specs: list[NodeSpec]) -> None:
         def undo() -> None:
             self.actuator.stop(specs)
-            for s in specs:
-                self.running.pop(s.name, None)
 
-        tx.run("start", names, lambda: self.actuator.start(specs), undo)
+        tx.run("start", _names(specs), lambda: self.actuator.start(specs), undo)
         for s in specs:
             self.running[s.name] = s
 
     def _stop(self, tx: Transaction, specs: list[NodeSpec]) -> None:
-        names = ",".join(s.name for s in specs)
-
         def undo() -> None:
             self.actuator.start(specs)
-            for s in specs:
-                self.running[s.name] = s
 
-        tx.run("stop", names, lambda: self.actuator.stop(specs), undo)
+        tx.run("stop", _names(specs), lambda: self.actuator.stop(specs), undo)
         for s in specs:
             self.running.pop(s.name, None)
 
-    def _set_active(self, tx: Transaction, spec: NodeSpec, active: bool) -> NodeSpec:
-        tx.run(
-            "activate" if active else "deactivate",
-            spec.name,
-            lambda: self.actuator.set_active(spec, active),
-            lambda: self.actuator.set_active(spec, not active),
-        )
-        return msgspec.structs.replace(spec, active=active)
+    def _control(self, tx: Transaction, action: str, batch: list[Ctl]) -> None:
+        t0 = self.clock()
+        replies = self.actuator.control(batch)
+        seconds = self.clock() - t0
+        failed = [(c, rep) for c, rep in zip(batch, replies, strict=True) if isinstance(rep, m.Err)]
+        done = [c for c, rep in zip(batch, replies, strict=True) if not isinstance(rep, m.Err)]
+        inverses = [Ctl(c.after or c.spec, c.inverse, c.spec) for c in reversed(done) if c.inverse]
+        if inverses:
+            tx.undo.append((f"undo {action}", lambda: self._ok(inverses)))
+        for c in done:
+            if c.after is not None:
+                table = self.running if c.spec.name in self.running else self.standby
+                table[c.spec.name] = c.after
+        for c in batch:
+            bad = next((rep for cc, rep in failed if cc is c), None)
+            detail = "" if bad is None else f"{bad.message} ({bad.code})"  # type: ignore[union-attr]
+            tx.records.append(StepRecord(c.label, "", seconds, bad is None, detail))
+        if failed:
+            c, rep = failed[0]
+            raise StepFailed(f"{c.label}: {rep.message}")  # type: ignore[union-attr]
 
-    def _set_params(self, tx: Transaction, name: str, values: dict[str, Any]) -> None:
-        spec = self.running[name]
-        old = {k: spec.params.get(k) for k in values}
-        tx.run(
-            "set_params",
-            name,
-            lambda: self.actuator.set_params(spec, values),
-            lambda: self.actuator.set_params(spec, old),
-        )
-        self.running[name] = msgspec.structs.replace(spec, params={**spec.params, **values})
+    def _ok(self, batch: list[Ctl]) -> list[Any]:
+        """Send a batch that must succeed whole; the results of its replies."""
+        replies = self.actuator.control(batch)
+        for c, rep in zip(batch, replies, strict=True):
+            if isinstance(rep, m.Err):
+                raise StepFailed(f"{c.label}: {rep.message}")
+        return [rep.result for rep in replies]  # type: ignore[union-attr]
 
-    def _rewire(self, tx: Transaction, name: str, port: str, keys: list[str]) -> None:
-        spec = self.running.get(name) or self.standby[name]
-        old = list(spec.ports[port].keys)
-        if old == keys:
-            return
-        tx.run(
-            f"rewire {port} of",
-            name,
-            lambda: self.actuator.rewire(spec, port, keys),
-            lambda: self.actuator.rewire(spec, port, old),
-        )
-        ports = dict(spec.ports)
-        ports[port] = msgspec.structs.replace(ports[port], keys=keys)
-        new = msgspec.structs.replace(spec, ports=ports)
-        (self.running if name in self.running else self.standby)[name] = new
 
-    def _transfer(self, old: NodeSpec, new_name: str) -> Any:
-        wanted = any(
-            t.source == old.name and t.target == new_name for t in self.replacement.state_transfer
-        )
-        return self.actuator.export_state(old) if wanted else None
-
-    def _swap(self, tx: Transaction, s: r.SwapComponent) -> None:
-        old = self.running[s.component]
-        strategy = self.replacement.strategy_for(s.replacement)
-        if strategy == "standby" and s.replacement in self.standby:
-            self._swap_standby(tx, s, old)
-        elif strategy in ("start-then-stop", "standby"):
-            self._swap_make_before_break(tx, s, old)
-        else:
-            self._swap_stop_then_start(tx, s, old)
-
-    def _swap_stop_then_start(self, tx: Transaction, s: r.SwapComponent, old: NodeSpec) -> None:
-        state = self._transfer(old, s.replacement)
-        self._stop(tx, [old])
-        self._start(tx, [self._spec(s.definition, s.inputs, s.outputs, state=state)])
-        self._first_switch = self.clock()
-
-    def _swap_make_before_break(self, tx: Transaction, s: r.SwapComponent, old: NodeSpec):
-        new = self._spec(s.definition, s.inputs, s.outputs, active=False)
-        self._start(tx, [new])
-        self._hand_over(tx, old, new)
-        self._retired.append(old)  # stopped last, once its subscribers are rewired
-
-    def _swap_standby(self, tx: Transaction, s: r.SwapComponent, old: NodeSpec) -> None:
-        # Bookkeeping (running/standby) is restored from snapshots on rollback.
-        self.running[s.replacement] = self.standby.pop(s.replacement)
-        for port, topics in s.inputs.items():
-            self._rewire(tx, s.replacement, port, [self.keys.data(t) for t in topics])
-        self._hand_over(tx, old, self.running[s.replacement])
-        if self.replacement.strategy_for(old.name) == "standby":
-            self.standby[old.name] = self.running.pop(old.name)  # warm for the way back
-        else:
-            self._retired.append(old)
-
-    def _hand_over(self, tx: Transaction, old: NodeSpec, new: NodeSpec) -> None:
-        """State transfer, then activate the new node and deactivate the old one."""
-        state = self._transfer(old, new.name)
-        if state is not None:
-            tx.run("import_state", new.name, lambda: self.actuator.import_state(new, state), None)
-        self.running[new.name] = self._set_active(tx, new, True)
-        self._first_switch = self.clock()
-        self.running[old.name] = self._set_active(tx, old, False)
-
-    def _restart(self, tx: Transaction, s: r.SetImplementation) -> None:
-        old = self.running[s.component]
-        self._stop(tx, [old])
-        self._start(tx, [self._spec(s.definition, s.inputs, s.outputs)])
+def _apply_request(spec: NodeSpec, req: m.NodeRequest) -> NodeSpec:
+    """The spec after a control request (for the host agent's restarts)."""
+    match req:
+        case m.Activate():
+            return msgspec.structs.replace(spec, active=True)
+        case m.Deactivate():
+            return msgspec.structs.replace(spec, active=False)
+        case m.SetParams(params=params):
+            return msgspec.structs.replace(spec, params={**spec.params, **params})
+        case m.Rewire(port=port, keys=keys):
+            ports = dict(spec.ports)
+            ports[port] = msgspec.structs.replace(ports[port], keys=list(keys))
+            return msgspec.structs.replace(spec, ports=ports)
+    return spec

@@ -19,6 +19,7 @@ import os
 import select
 import signal
 import socket
+import struct
 import sys
 import time
 from typing import Any
@@ -33,6 +34,8 @@ from rra_agent.errors import RraError
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
+#: The data samples' send-time attachment (as `messages.pack_stamp`), inlined on the hot path.
+_STAMP = struct.Struct("<d")
 
 
 def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Session:
@@ -42,7 +45,7 @@ def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Sessi
     session = zenoh.open(bus.to_zenoh())
     if wait_connected and bus.connect:
         deadline = time.monotonic() + bus.connect_timeout_ms / 1000.0
-        while not session.info.peers_zid():
+        while not (session.info.routers_zid() or session.info.peers_zid()):
             if time.monotonic() >= deadline:
                 session.close()
                 raise NoPeer(f"no peer reachable at {', '.join(bus.connect)}")
@@ -73,7 +76,7 @@ class ZenohTransport:
         self.subscribers: dict[str, list[Any]] = {}
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
-        self.publishers[port].put(payload, attachment=m.pack_stamp(stamp))
+        self.publishers[port].put(payload, attachment=_STAMP.pack(stamp))
 
     def rebind(self, port: str, direction: str, keys: list[str]) -> None:
         if direction == "publish":
@@ -89,14 +92,15 @@ class ZenohTransport:
         ]
 
     def _on_sample(self, port: str):
+        unpack = _STAMP.unpack
+
         def callback(sample: zenoh.Sample) -> None:
             core = self.core
             if core is None:
                 return
             att = sample.attachment
-            core.deliver(
-                port, sample.payload.to_bytes(), m.unpack_stamp(att.to_bytes() if att else None)
-            )
+            stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
+            core.deliver(port, sample.payload.to_bytes(), stamp)
 
         return callback
 

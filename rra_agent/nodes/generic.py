@@ -2,6 +2,8 @@
 
 - `Relay`: forwards each input sample from port ``in`` to port ``out``, adding the ``offset``
   parameter to the field ``value`` if present; keeps a count it can hand over as state.
+- `Echo`: publishes each input sample of port ``in`` unchanged on port ``out`` (benchmarks:
+  the least a node can do, so a round trip through it measures the SDK alone).
 - `Ticker`: publishes ``{"seq": n, "value": param value}`` on ``out`` at ``rate_hz``.
 """
 
@@ -32,6 +34,11 @@ class Relay(Node):
     def import_state(self, state: Any) -> None:
         if isinstance(state, dict) and isinstance(state.get("count"), int):
             self.count = state["count"]
+
+
+class Echo(Node):
+    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
+        self.ctx.publish("out", data)
 
 
 class Ticker(Node):

@@ -151,7 +151,7 @@ def test_start_then_stop_makes_before_break(quad):
         ("export", "controller"),
         ("import", "proploss_controller"),
         ("active", "proploss_controller"),
-        ("active", "controller"),
+        # no deactivation of controller: it publishes elsewhere and the rewire cuts it off
         ("rewire", "vehicle_simulator"),
         ("stop", "controller"),  # last: after the simulator listens to the new node
     ]
@@ -170,7 +170,7 @@ def test_standby_switch_is_activate_rewire_and_no_start(quad):
     act.calls.clear()
     out = ex.execute(plan)
     assert out.ok and out.first_switch is not None
-    assert [c[0] for c in act.calls] == ["export", "import", "active", "active", "rewire", "stop"]
+    assert [c[0] for c in act.calls] == ["export", "import", "active", "rewire", "stop"]
     assert act.calls[2] == ("active", "proploss_controller", True)
     assert not ex.standby and ex.running["proploss_controller"].active
 
@@ -202,11 +202,7 @@ def test_failed_rewire_undoes_the_swap_in_reverse_order(quad):
         (K.data("proploss_controller/motor_cmd"),),
     )
     undo = act.calls[act.calls.index(failed) + 1 :]
-    assert undo == [
-        ("active", "controller", True),
-        ("active", "proploss_controller", False),
-        ("stop", "proploss_controller"),
-    ]
+    assert undo == [("active", "proploss_controller", False), ("stop", "proploss_controller")]
     assert set(ex.running) >= {"controller"} and "proploss_controller" not in ex.running
 
 
@@ -252,7 +248,30 @@ def test_standby_switch_is_one_concurrent_batch_and_the_host_learns_new_specs(qu
     act.calls.clear()
     act.batches.clear()
     assert ex.execute(swap_plan(target)).ok
-    # activate proploss + deactivate controller + rewire the simulator: one round trip
-    assert act.batches == [3]
+    # activate proploss + rewire the simulator: one round trip
+    assert act.batches == [2]
     sim = ex.running["vehicle_simulator"]
     assert sim.ports["motor_cmd"].keys == [K.data("proploss_controller/motor_cmd")]
+
+
+def test_swapped_out_node_kept_as_standby_is_deactivated_for_the_way_back(quad):
+    _, target = quad
+    act = FakeActuator()
+    rep = Replacement(components={"proploss_controller": "standby", "controller": "standby"})
+    ex = Executor(act, K, rep, default_host="local")
+    deploy(ex, act, target("Standard"))
+    swap = swap_plan(target).steps[0]
+    pre = spec_for(K, swap.definition, dict(swap.inputs), dict(swap.outputs), default_host="l")
+    ex.prestart_standby([pre])
+    act.calls.clear()
+    assert ex.execute(swap_plan(target)).ok
+    assert ("active", "controller", False) in act.calls
+    assert not any(c[0] == "stop" for c in act.calls)
+    assert set(ex.standby) == {"controller"} and not ex.standby["controller"].active
+    # and back: the controller is switched to again without a start
+    act.calls.clear()
+    back = r.diff(target("Proploss"), target("Standard"))
+    assert ex.execute(back).ok
+    assert not any(c[0] == "start" for c in act.calls)
+    assert ("active", "controller", True) in act.calls
+    assert set(ex.standby) == {"proploss_controller"}

@@ -62,6 +62,7 @@ class ZenohActuator:
         #: Nodes whose liveliness token this session sees: a direct link to them exists.
         self.alive: set[str] = set()
         self.dropped = 0
+        self._pending: list[Any] = []
         self._subs = [
             session.declare_subscriber(keys.events, self._on_event),
             session.liveliness().declare_subscriber(keys.alive_all, self._on_alive, history=True),
@@ -188,9 +189,11 @@ class ZenohActuator:
             for c in batch
         ]
         replies = [self._first_reply(h, c) for h, c in zip(handlers, batch, strict=True)]
+        latest: dict[str, m.NodeSpec] = {}
         for c, rep in zip(batch, replies, strict=True):
             if isinstance(rep, m.Ok) and c.after is not None:
-                self._update(c.after)
+                latest[c.spec.name] = c.after
+        self._update(list(latest.values()))
         return replies
 
     def _first_reply(self, handler: Any, c: Ctl) -> m.Reply:
@@ -223,11 +226,19 @@ class ZenohActuator:
                 raise StepFailed(f"{what}: {message} ({code})")
         raise StepFailed(f"{what}: unexpected reply {reply!r}")
 
-    def _update(self, spec: m.NodeSpec) -> None:
-        """Tell the host agent the node's current spec, without waiting for the answer."""
-        self.session.get(
-            self.keys.host_ctl(spec.host),
-            lambda _reply: None,
-            payload=_ANY.encode(m.UpdateSpec(spec=spec)),
-            timeout=self.request_timeout,
-        )
+    def _update(self, specs: list[m.NodeSpec]) -> None:
+        """Tell the host agents the nodes' current specs: one request per host, not waited
+        for (its handler is kept and drained at a later call)."""
+        # forget answered ones (and, in case some never answer, all but the newest few)
+        self._pending = [h for h in self._pending if h.try_recv() is None][-64:]
+        by_host: dict[str, list[m.NodeSpec]] = {}
+        for spec in specs:
+            by_host.setdefault(spec.host, []).append(spec)
+        for host, group in by_host.items():
+            self._pending.append(
+                self.session.get(
+                    self.keys.host_ctl(host),
+                    payload=_ANY.encode(m.UpdateSpec(specs=group)),
+                    timeout=self.request_timeout,
+                )
+            )

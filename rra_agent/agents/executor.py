@@ -19,9 +19,10 @@ about one round trip (or one process start), not one per node:
    bus, so old and new cannot overlap);
 3. **state transfer** for make-before-break and standby swaps: export from the old nodes,
    import into the new ones;
-4. **switch**, one batch: activate the new nodes, deactivate the old ones, set parameters,
-   rewire subscribers (of swapped peers, of standby nodes' own inputs, and the plan's
-   `Rewire` steps);
+4. **switch**, one batch: activate the new nodes, deactivate the old ones (unless they are
+   stopped next and publish on other keys than their replacements: then the rewire of their
+   subscribers in this batch already cuts them off), set parameters, rewire subscribers (of
+   swapped peers, of standby nodes' own inputs, and the plan's `Rewire` steps);
 5. **stop** the components that go, with the swapped-out nodes (an inactive node publishes
    nothing, so stopping it last costs the switch nothing), unless a swapped-out node's own
    strategy is ``standby``: then it stays, inactive, for the way back.
@@ -343,7 +344,8 @@ class Executor:
                 new, {p: [self.keys.data(t) for t in ts] for p, ts in w.step.inputs.items()}
             )
             batch.append(self._activation(self.running[w.new.name], True))
-            batch.append(self._activation(self.running[w.old.name], False))
+            if self._must_deactivate(w):
+                batch.append(self._activation(self.running[w.old.name], False))
         for s in steps:
             if isinstance(s, r.SetParameters):
                 spec = self.running[s.component]
@@ -361,6 +363,16 @@ class Executor:
         self._control(tx, "switch", batch)
         if warm:
             self._switched = self.clock()
+
+    def _must_deactivate(self, w: _Swap) -> bool:
+        """An old node that is stopped after the switch and publishes on other keys than its
+        replacement needs no deactivation: the rewire of its subscribers, in the same batch,
+        already cuts it off. One that stays (standby) or shares output keys does."""
+        if self.replacement.strategy_for(w.old.name) == "standby":
+            return True
+        old_out = {k for p in w.old.ports.values() if p.direction == "publish" for k in p.keys}
+        new_out = {k for p in w.new.ports.values() if p.direction == "publish" for k in p.keys}
+        return bool(old_out & new_out)
 
     def _activation(self, spec: NodeSpec, active: bool) -> Ctl:
         req = m.Activate() if active else m.Deactivate()

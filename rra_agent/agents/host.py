@@ -158,10 +158,14 @@ class HostAgent:
                     return m.Err(message=f"no node {name!r} on host {self.host}", code="unknown")
                 sup.stop(name, now)
                 return m.Ok(result={"state": sup.state(name).value})
-            case m.UpdateSpec(spec=spec):
-                if spec.name not in sup.procs:
-                    return m.Err(message=f"no node {spec.name!r} on {self.host}", code="unknown")
-                sup.replace_spec(spec.name, spec)
+            case m.UpdateSpec(specs=specs):
+                unknown = [s.name for s in specs if s.name not in sup.procs]
+                for spec in specs:
+                    if spec.name in sup.procs:
+                        sup.replace_spec(spec.name, spec)
+                if unknown:
+                    names = ", ".join(unknown)
+                    return m.Err(message=f"no node(s) {names} on {self.host}", code="unknown")
                 return m.Ok()
             case m.SignalNode(node=name, signal=sig):
                 p = sup.procs.get(name)

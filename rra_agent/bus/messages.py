@@ -222,9 +222,10 @@ class StopNode(Msg, tag="stop_node"):
 
 
 class UpdateSpec(Msg, tag="update_spec"):
-    """The node's params/ports changed at run time: restart it with these from now on."""
+    """These nodes' params/ports/active flag changed at run time: restart them with these
+    specs from now on (the running processes are left alone)."""
 
-    spec: NodeSpec
+    specs: list[NodeSpec]
 
 
 class SignalNode(Msg, tag="signal_node"):

@@ -165,6 +165,7 @@ class NodeRuntime:
     def _on_query(self, core: NodeCore):
         def callback(query: zenoh.Query) -> None:
             payload = query.payload
+            request: m.NodeRequest | None = None
             try:
                 request = _CTL.decode(payload.to_bytes() if payload is not None else b"")
             except Exception as e:  # malformed control request: refuse, count, carry on
@@ -174,7 +175,10 @@ class NodeRuntime:
             else:
                 reply = core.handle(request)
             query.reply(query.key_expr, _REPLY.encode(reply))
-            self.wake()  # the main loop re-reads the stop flag and rate_hz
+            if core.stop_requested.is_set() or (
+                isinstance(request, m.SetParams) and "rate_hz" in request.params
+            ):
+                self.wake()  # the main loop re-reads the stop flag and rate_hz
 
         return callback
 

@@ -81,7 +81,7 @@ def agent(procs, bus, tmp_path):
 
 
 def test_start_run_data_and_stop(agent, procs):
-    proc, client, watch = agent
+    _proc, client, watch = agent
     reply = client.host("h1", m.StartNode(spec=relay_spec()))
     assert isinstance(reply, m.Ok), reply
     running = wait_until(lambda: watch.state("relay", "RUNNING"), 15, "relay RUNNING")

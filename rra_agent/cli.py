@@ -212,6 +212,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.agents.status:configure_events", p),
         lazy("rra_agent.agents.status:run_events"),
     ),
+    "param": Command(
+        "print or set the parameters of a running node (NAME=VALUE ...)",
+        lambda p: _configure("rra_agent.agents.status:configure_param", p),
+        lazy("rra_agent.agents.status:run_param"),
+    ),
     "agent": Command(
         "serve this machine as a host of a system: start and supervise its nodes",
         lambda p: _configure("rra_agent.agents.host:configure", p),

@@ -223,3 +223,26 @@ def test_ctrl_c_leaves_no_process_behind(system, procs):
     from conftest import pid_alive
 
     assert not [p for p in pids if pid_alive(p)]
+
+
+def test_rra_param_prints_and_sets_a_running_nodes_parameters(system, bus):
+    import subprocess
+    import sys
+
+    sys_ = system()
+
+    def rra_param(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "rra_agent", "param", "--system", "relay_system",
+             "--connect", bus.connect[0], *args],
+            capture_output=True, text=True, timeout=30,
+        )  # fmt: skip
+
+    shown = rra_param("source")
+    assert shown.returncode == 0, shown.stderr
+    assert "value = 1.0" in shown.stdout
+    assert rra_param("source", "value=9").returncode == 0
+    sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap after rra param")
+    bad = rra_param("nosuch", "x=1")
+    assert bad.returncode == 1 and "no running node 'nosuch'" in bad.stderr
+    assert "Traceback" not in bad.stderr

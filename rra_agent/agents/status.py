@@ -169,3 +169,47 @@ def run_events(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             return 0
     return 0
+
+
+def configure_param(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--system", required=True, help="system name (the package's)")
+    p.add_argument("node", help="node name")
+    p.add_argument("values", nargs="*", metavar="NAME=VALUE", help="values are YAML scalars")
+    add_bus_arguments(p)
+
+
+def parse_assignments(items: list[str]) -> dict[str, Any]:
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise RraError(f"expected NAME=VALUE, got {item!r}")
+        try:
+            out[name] = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise RraError(f"{item!r}: not a YAML value: {e}") from None
+    return out
+
+
+def run_param(args: argparse.Namespace) -> int:
+    """Set parameters of a running node (or print them all when none is given)."""
+    values = parse_assignments(args.values)
+    with BusClient(bus_from_args(args), args.system) as client:
+        try:  # the router may still be telling this new client about the tokens
+            wait_until(
+                lambda: any(n == args.node for _, n in client.alive()),
+                2.0,
+                f"node {args.node}",
+                interval=0.05,
+            )
+        except TimeoutError:
+            raise RraError(f"no running node {args.node!r} in system {args.system!r}") from None
+        reply = client.node(args.node, m.SetParams(params=values) if values else m.Describe())
+    if isinstance(reply, m.Err):
+        raise RraError(f"{args.node}: {reply.message}")
+    params = values or reply.result["params"]
+    for name, value in sorted(params.items()):
+        print(f"{name} = {value!r}")
+    return 0

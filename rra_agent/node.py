@@ -28,28 +28,40 @@ def read_spec(path: str | None) -> NodeSpec:
     return msgspec.json.decode(raw, type=NodeSpec)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m rra_agent.node", description=__doc__)
-    parser.add_argument("--spec", help="node spec JSON file (default: $RRA_NODE_SPEC)")
-    args = parser.parse_args(argv)
+def run_node(spec: NodeSpec) -> int:
+    """Run a node (Python implementation) until it is told to stop; its exit status.
 
+    The bus configuration comes from ``RRA_BUS_CONFIG``. Used by ``python -m rra_agent.node``
+    and by the host agent's fork server.
+    """
     from rra_agent.bus.config import BusConfig
     from rra_agent.bus.node import load_node_class
     from rra_agent.errors import RraError
 
     try:
-        spec = read_spec(args.spec)
         if not isinstance(spec.implementation, str):
             raise ValueError("an external-command implementation is run directly, not here")
         node_cls = load_node_class(spec.implementation)
         bus = BusConfig.from_env()
-    except (ValueError, msgspec.DecodeError, RraError) as e:
-        print(f"rra node: {e}", file=sys.stderr)
+    except (ValueError, RraError) as e:
+        print(f"rra node {spec.name}: {e}", file=sys.stderr)
         return EXIT_CONFIG
 
     from rra_agent.bus.runtime import NodeRuntime
 
     return NodeRuntime(spec, node_cls, bus).run()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m rra_agent.node", description=__doc__)
+    parser.add_argument("--spec", help="node spec JSON file (default: $RRA_NODE_SPEC)")
+    args = parser.parse_args(argv)
+    try:
+        spec = read_spec(args.spec)
+    except (ValueError, OSError, msgspec.DecodeError) as e:
+        print(f"rra node: {e}", file=sys.stderr)
+        return EXIT_CONFIG
+    return run_node(spec)
 
 
 if __name__ == "__main__":

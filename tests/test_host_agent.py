@@ -160,3 +160,15 @@ def test_malformed_requests_and_samples_crash_nothing(agent, procs):
     assert info.result["dropped"] >= len(junk)  # counted, not crashed
     assert proc.poll() is None
     assert watch.state("relay", "BACKOFF") is None
+
+
+def test_killed_host_agent_takes_its_nodes_along(agent, procs):
+    proc, client, watch = agent
+    client.host("h1", m.StartNode(spec=relay_spec()))
+    running = wait_until(lambda: watch.state("relay", "RUNNING"), 15, "relay RUNNING")
+    procs.watch(running.pid)
+    proc.kill()  # SIGKILL: no chance to stop anything
+    proc.wait()
+    from conftest import pid_alive
+
+    wait_until(lambda: not pid_alive(running.pid), 10, "the orphaned node to die")

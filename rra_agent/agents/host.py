@@ -69,7 +69,8 @@ class HostAgent:
         #: Children connect with ``bus``; the agent itself listens on the hub endpoint if ``hub``.
         self.bus = bus
         self.session_bus = bus.as_hub() if hub else bus
-        self.local = LocalHost(host, bus, log_dir)
+        preload = {i.rpartition(".")[0] for i in (allowed or ()) if " " not in i and "." in i}
+        self.local = LocalHost(host, bus, log_dir, preload=sorted(preload))
         self.allowed = frozenset(allowed) if allowed is not None else None
         self.clock = clock
         self.supervisor = Supervisor(restart=restart, stop=stop, listener=self._on_transition)

@@ -26,6 +26,7 @@ from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.rules import Engine, TickResult
+from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
@@ -61,6 +62,7 @@ class AdaptationProcess:
         self.seq = 0
         self.last_sent = 0.0
         self.publisher: zenoh.Publisher | None = None
+        self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -119,6 +121,15 @@ class AdaptationProcess:
             )
         )
         self.last_sent = now
+        if self.viz:
+            self.viz.selection(
+                result.selection,
+                result.cv,
+                now,
+                universe=self.dep.package.features.runtime_features(),
+                fired=[f"{c.rule}: {c.action}" for c in cause],
+                changed=result.changed,
+            )
 
     def _send(self, msg: m.Selection | m.ConflictReport) -> None:
         if self.publisher is not None:
@@ -128,6 +139,7 @@ class AdaptationProcess:
     def run(self, *, install_signals: bool = True) -> int:
         if install_signals:
             self.loop.install_signals()
+        self.viz = open_logger(self.name)
         session = open_session(self.bus)
         try:
             self.publisher = session.declare_publisher(
@@ -144,6 +156,8 @@ class AdaptationProcess:
         finally:
             self.publisher = None
             session.close()
+            if self.viz:
+                self.viz.close()
 
 
 def main(argv: list[str] | None = None) -> int:

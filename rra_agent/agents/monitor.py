@@ -30,6 +30,7 @@ from rra_agent.core.context import ContextMonitor
 from rra_agent.core.resolution import topic_of
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
+from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
@@ -91,6 +92,7 @@ class MonitorProcess:
         self.dropped = 0
         self.published = 0
         self.publishers: dict[str, zenoh.Publisher] = {}
+        self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
 
     def source_key(self, source: str) -> str:
         ep = parse_endpoint(source)
@@ -114,12 +116,15 @@ class MonitorProcess:
                     )
                     self.publishers[c.name].put(_CTX.encode(msg))
                     self.published += 1
+                    if self.viz:
+                        self.viz.measurement(c.name, c.value, msg.stamp)
 
         return callback
 
     def run(self, *, install_signals: bool = True) -> int:
         if install_signals:
             self.loop.install_signals()
+        self.viz = open_logger(self.name)
         session = open_session(self.bus)
         try:
             for meas in self.dep.package.measurements.measurements:
@@ -140,6 +145,8 @@ class MonitorProcess:
             return 0
         finally:
             session.close()
+            if self.viz:
+                self.viz.close()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,6 +42,7 @@ from rra_agent.core import resolution as r
 from rra_agent.core.features import default_runtime_selection
 from rra_agent.errors import RraError
 from rra_agent.models.system import SystemModel
+from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
@@ -80,6 +81,7 @@ class ResolutionEngine:
         self.dropped = 0
         self._status: dict[str, Any] = {}
         self._lock = threading.Lock()
+        self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
 
     # ---- the model side (pure, on the main thread) ---------------------------------------
     def target(self, selection: frozenset[str], cv: dict[str, float]) -> SystemModel:
@@ -207,20 +209,26 @@ class ResolutionEngine:
         durations: dict[str, float] | None = None,
     ) -> None:
         self.seq += 1
-        self.sink.emit(
-            m.AdaptationEvent(
-                stamp=time.time(),
-                kind=kind,
-                message=text,
-                level=level,
-                source=self.name,
-                cause=list(msg.cause) if msg else [],
-                plan=[rec.line() for rec in plan.records] if plan else [],
-                outcome=outcome,  # type: ignore[arg-type]
-                durations=durations or {},
-                seq=self.seq,
-            )
+        event = m.AdaptationEvent(
+            stamp=time.time(),
+            kind=kind,
+            message=text,
+            level=level,
+            source=self.name,
+            cause=list(msg.cause) if msg else [],
+            plan=[rec.line() for rec in plan.records] if plan else [],
+            outcome=outcome,  # type: ignore[arg-type]
+            durations=durations or {},
+            seq=self.seq,
         )
+        self.sink.emit(event)
+        if self.viz:
+            self.viz.event(event)
+
+    def _node_state(self, st: m.NodeState) -> None:
+        self.sink.record(st)
+        if self.viz:
+            self.viz.node_state(st)
 
     def _publish_status(self) -> None:
         status = {
@@ -279,6 +287,7 @@ class ResolutionEngine:
     def run(self, *, install_signals: bool = True) -> int:
         if install_signals:
             self.loop.install_signals()
+        self.viz = open_logger(self.name)
         session = open_session(self.bus)
         token = None
         log = self.run_dir / "events.jsonl" if self.run_dir else None
@@ -287,7 +296,7 @@ class ResolutionEngine:
             session,
             self.keys,
             start_timeout=self.start_timeout,
-            on_node_state=lambda st: self.loop.post(lambda: self.sink.record(st)),
+            on_node_state=lambda st: self.loop.post(lambda: self._node_state(st)),
         )
         self.executor = Executor(
             self.actuator, self.keys, self.dep.package.runtime.replacement, default_host=self.host
@@ -312,6 +321,8 @@ class ResolutionEngine:
             self.actuator.close()
             self.sink.close()
             session.close()
+            if self.viz:
+                self.viz.close()
 
     def _tick(self, now: float) -> None:
         """Retry a failed adaptation once ``retry_after`` has passed."""

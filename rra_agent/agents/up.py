@@ -41,6 +41,15 @@ def configure(p: argparse.ArgumentParser) -> None:
         help="do not run the adaptation engine (a scenario's control case)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    # -- Rerun logging (rra_agent.viz) --
+    p.add_argument(
+        "--rerun",
+        nargs="*",
+        metavar="MODE",
+        help="log the run to Rerun, one recording for all processes: `save [PATH.rrd]` "
+        "(the default mode; PATH default <run-dir>/recording.rrd), `connect [URL]` (a running "
+        "viewer), `off` (the default); put it after PKG",
+    )
     add_bus_arguments(p)
 
 
@@ -89,6 +98,15 @@ def run(args: argparse.Namespace) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
+    # -- Rerun logging (rra_agent.viz): the children inherit the configuration --
+    from rra_agent.viz import recording
+
+    try:
+        rerun_config, rerun_out = recording.rerun_option(args.rerun, dep.system, run_dir)
+    except ValueError as e:
+        print(f"rra up: --rerun: {e}", file=sys.stderr)
+        return 2
+    recording.export(rerun_config)
     specs = engine_specs(dep, names, run_dir, args.host, not args.no_adaptation)
     allowed = set(dep.implementations) | {" ".join(s.implementation.command) for s in specs}  # type: ignore[union-attr]
     agent = HostAgent(dep.system, args.host, bus, run_dir / "logs", hub=True, allowed=allowed)
@@ -108,4 +126,15 @@ def run(args: argparse.Namespace) -> int:
     agent.run(on_ready=start_engines)
     if not args.quiet:
         print("rra up: all processes stopped", flush=True)
+    # -- Rerun logging (rra_agent.viz): merge the processes' files, once all have exited --
+    if rerun_out is not None:
+        try:
+            for warning in recording.finish(rerun_config, rerun_out):
+                print(f"rra up: rerun: {warning}", file=sys.stderr)
+        except recording.RecordingError as e:
+            print(f"rra up: rerun recording FAILED: {e}", file=sys.stderr)
+            print(f"rra up: the processes' files are in {rerun_config.dir}", file=sys.stderr)
+            return 1
+        if not args.quiet:
+            print(f"rra up: Rerun recording saved to {rerun_out}", flush=True)
     return 0

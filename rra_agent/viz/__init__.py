@@ -1,0 +1,1 @@
+"""Visualisation of a running RRA system (Rerun). Importing this package never imports rerun."""

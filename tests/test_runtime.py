@@ -246,3 +246,35 @@ def test_rra_param_prints_and_sets_a_running_nodes_parameters(system, bus):
     bad = rra_param("nosuch", "x=1")
     assert bad.returncode == 1 and "no running node 'nosuch'" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_restarted_resolution_engine_adopts_the_running_nodes(system):
+    sys_ = system()
+    sys_.set_level(7.0)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap to Filtered")
+    before = {n["node"]: n.get("pid") for n in st["nodes"] if n["state"] == "RUNNING"}
+    engine_pid = before.pop("resolution")
+    assert sys_.client.host("local", m.SignalNode(node="resolution", signal=signal.SIGKILL))
+    st = sys_.wait(
+        lambda s: sys_.node(s, "resolution")["pid"] not in (None, engine_pid)
+        and sys_.node(s, "resolution")["state"] == "RUNNING"
+        and s["engine"] is not None,
+        "the resolution engine restarted",
+    )
+    # The engine came back with the selection it had applied, and took the nodes over:
+    # same processes, no restart, nothing started.
+    assert "Filtered" in st["engine"]["selection"]
+    assert set(st["engine"]["running"]) == {"source", "filtered", "sink"}
+    after = {
+        n["node"]: n.get("pid")
+        for n in st["nodes"]
+        if n["state"] == "RUNNING" and n["node"] != "resolution"
+    }
+    assert after == before
+    adopt = [e for e in sys_.events() if isinstance(e, m.AdaptationEvent) and e.kind == "adopt"]
+    assert adopt and "adopted 3 running node(s)" in adopt[-1].message
+    assert not any(p.startswith("start ") for p in adopt[-1].plan)
+    # ... and it still adapts.
+    sys_.set_level(2.0)
+    st = sys_.wait(lambda s: "direct" in s["engine"]["running"], "the swap back to Direct")
+    assert sys_.node(st, "sink")["pid"] == before["sink"]

@@ -29,6 +29,7 @@ import msgspec
 import zenoh
 
 from rra_agent.agents.actuator import ZenohActuator
+from rra_agent.agents.adoption import observe, takeover_plan
 from rra_agent.agents.deployment import Deployment
 from rra_agent.agents.events import EventSink
 from rra_agent.agents.executor import Executor, Outcome, spec_for
@@ -41,7 +42,7 @@ from rra_agent.bus.runtime import open_session
 from rra_agent.core import resolution as r
 from rra_agent.core.features import default_runtime_selection
 from rra_agent.errors import RraError
-from rra_agent.models.system import SystemModel
+from rra_agent.models.system import Component, SystemModel
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
@@ -93,18 +94,11 @@ class ResolutionEngine:
         them wired as the configured model connects them to what runs."""
         running = {c.name for c in target.components}
         rep = self.dep.package.runtime.replacement
-        subs = r.subscriptions(self.dep.configured)
-        out = []
-        for c in self.dep.configured.components:
-            if c.name in running or rep.strategy_for(c.name) != "standby":
-                continue
-            inputs = {p.name: subs.get((c.name, p.name), ()) for p in c.ports}
-            outputs = {
-                p.name: r.topic_of(self.dep.configured, c.name, p.name)
-                for p in c.ports
-                if p.direction == "publish"
-            }
-            out.append(spec_for(self.keys, c, inputs, outputs, default_host=self.host))
+        out = [
+            self._spec(self.dep.configured, c)
+            for c in self.dep.configured.components
+            if c.name not in running and rep.strategy_for(c.name) == "standby"
+        ]
         return out
 
     # ---- bus callbacks (Zenoh thread) ----------------------------------------------------
@@ -178,6 +172,7 @@ class ResolutionEngine:
             durations["switch"] = outcome.first_switch
         if outcome.ok:
             self.current, self.selection, self.cv, self.failed = target, selection, cv, None
+            self._persist()
             text = f"applied selection {sorted(selection)}" + (
                 f", {len(plan.steps)} step(s)" if plan.steps else " (no change to the system)"
             )
@@ -249,20 +244,30 @@ class ResolutionEngine:
 
     # ---- lifecycle ---------------------------------------------------------------------
     def deploy(self) -> Outcome:
+        """Make the running system match the target of the current selection: start it from
+        nothing, or take over what already runs (after a restart of this engine)."""
         target = self.target(self.selection, self.cv)
-        outcome = self.executor.execute(r.diff(self.current, target))
+        hosts = sorted({c.host or self.host for c in self.dep.configured.components})
+        observed = observe(self.actuator.client, hosts, self.dep.configured)
+        expected = {c.name: self._spec(target, c) for c in target.components}
+        candidates = {s.name for s in self.standby_specs(target)}
+        plan, running, standby = takeover_plan(observed, expected, target, candidates)
+        self.executor.running, self.executor.standby = running, standby
+        outcome = self.executor.execute(plan)
         if outcome.ok:
             self.current = target
-            standby = self.standby_specs(target)
-            if standby:
-                pre = self.executor.prestart_standby(standby)
+            missing = [s for s in self.standby_specs(target) if s.name not in standby]
+            if missing:
+                pre = self.executor.prestart_standby(missing)
                 outcome.records.extend(pre.records)
                 if not pre.ok:
                     outcome.ok, outcome.error = False, pre.error
+        adopted = len(observed.nodes)
+        what = f"adopted {adopted} running node(s), " if adopted else ""
         self._event(
-            "deploy",
-            f"deployed {len(self.executor.running)} node(s), "
-            f"{len(self.executor.standby)} on standby"
+            "adopt" if adopted else "deploy",
+            f"{what}{len(self.executor.running)} node(s) running, "
+            f"{len(self.executor.standby)} on standby, {len(plan.steps)} step(s)"
             if outcome.ok
             else f"deployment failed: {outcome.error}",
             None,
@@ -271,8 +276,42 @@ class ResolutionEngine:
             plan=outcome,
             durations={"execute": outcome.seconds},
         )
+        if outcome.ok:
+            self._persist()
         self._publish_status()
         return outcome
+
+    def _spec(self, model: SystemModel, c: Component) -> m.NodeSpec:
+        """The spec that runs ``c`` wired as ``model`` connects it."""
+        subs = r.subscriptions(model)
+        inputs = {p.name: subs.get((c.name, p.name), ()) for p in c.ports}
+        outputs = {
+            p.name: r.topic_of(model, c.name, p.name) for p in c.ports if p.direction == "publish"
+        }
+        return spec_for(self.keys, c, inputs, outputs, default_host=self.host)
+
+    # ---- the applied selection survives a restart of this engine -------------------------
+    @property
+    def state_file(self) -> Path | None:
+        return self.run_dir / f"{self.name}-state.json" if self.run_dir else None
+
+    def _persist(self) -> None:
+        if self.state_file is not None:
+            data = {"selection": sorted(self.selection), "cv": self.cv}
+            tmp = self.state_file.with_suffix(".tmp")
+            tmp.write_bytes(msgspec.json.encode(data))
+            tmp.replace(self.state_file)
+
+    def _restore(self) -> None:
+        """The selection applied before this engine was restarted, if any."""
+        if self.state_file is None or not self.state_file.exists():
+            return
+        try:
+            data = msgspec.json.decode(self.state_file.read_bytes(), type=dict[str, Any])
+            self.selection = frozenset(data["selection"])
+            self.cv = {**self.cv, **data["cv"]}
+        except (msgspec.DecodeError, msgspec.ValidationError, KeyError, TypeError) as e:
+            print(f"rra resolution: ignoring {self.state_file}: {e}", file=sys.stderr)
 
     def _wait_for_hosts(self, session: zenoh.Session, timeout: float = 30.0) -> None:
         hosts = {c.host or self.host for c in self.dep.configured.components}
@@ -307,6 +346,7 @@ class ResolutionEngine:
                 session.declare_queryable(self.keys.engine_ctl(self.name), self._on_status),
             ]
             self._wait_for_hosts(session)
+            self._restore()
             outcome = self.deploy()
             if not outcome.ok:
                 print(f"rra resolution: deployment failed: {outcome.error}", file=sys.stderr)

@@ -1,0 +1,113 @@
+"""Taking over a running system: the plan from what runs to the target (no bus)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from rra_agent.agents.adoption import Observed, spec_from_info, takeover_plan
+from rra_agent.agents.deployment import deploy
+from rra_agent.agents.executor import spec_for
+from rra_agent.bus.keys import Keys
+from rra_agent.core import resolution as r
+
+DATA = Path(__file__).parent / "data" / "relay_system"
+K = Keys("relay_system")
+
+
+@pytest.fixture(scope="module")
+def world():
+    dep = deploy(DATA)
+    pkg = dep.package
+
+    def target(path: str, gain: float = 1.0):
+        sel = {"Relay", "Path", "Tuning", path}
+        return r.resolve_runtime(dep.configured, pkg.runtime, pkg.features, sel, {"Gain": gain})
+
+    def expected(model):
+        subs = r.subscriptions(model)
+        out = {}
+        for c in model.components:
+            inputs = {p.name: subs.get((c.name, p.name), ()) for p in c.ports}
+            outputs = {p.name: f"{c.name}/{p.name}" for p in c.ports if p.direction == "publish"}
+            out[c.name] = spec_for(K, c, inputs, outputs, default_host="local")
+        return out
+
+    return target, expected
+
+
+def kinds(plan: r.Plan) -> list[tuple[str, str]]:
+    return [(type(s).__name__, s.component) for s in plan.steps]
+
+
+def test_everything_running_as_it_should_is_adopted_without_a_step(world):
+    target, expected = world
+    tgt = target("Direct")
+    want = expected(tgt)
+    plan, running, standby = takeover_plan(Observed(dict(want)), want, tgt, set())
+    assert plan.empty and set(running) == {"source", "direct", "sink"} and not standby
+
+
+def test_nothing_running_is_a_deployment(world):
+    target, expected = world
+    tgt = target("Direct")
+    plan, running, _ = takeover_plan(Observed(), expected(tgt), tgt, set())
+    assert kinds(plan) == [("StartComponent", n) for n in ("source", "direct", "sink")]
+    assert not running
+
+
+def test_differences_become_ordinary_steps(world):
+    target, expected = world
+    tgt = target("Filtered", gain=7.0)
+    want = expected(tgt)
+    seen = dict(want)
+    seen["sink"] = msgspec.structs.replace(
+        want["sink"],
+        params={"offset": 1.0},  # an old CV value
+        ports={**want["sink"].ports, "in": msgspec.structs.replace(
+            want["sink"].ports["in"], keys=[K.data("direct/out")])},  # the old wiring
+    )  # fmt: skip
+    del seen["filtered"]  # not started yet
+    seen["direct"] = spec_for(  # still running from before
+        K, next(c for c in target("Direct").components if c.name == "direct"),
+        {"in": ("source/out",)}, {"out": "direct/out"}, default_host="local",
+    )  # fmt: skip
+    seen["source"] = msgspec.structs.replace(want["source"], active=False)  # inactive
+    plan, running, _ = takeover_plan(Observed(seen), want, tgt, set())
+    assert kinds(plan) == [
+        ("StartComponent", "filtered"),
+        ("SetImplementation", "source"),  # inactive where it should run: restarted
+        ("SetParameters", "sink"),
+        ("Rewire", "sink"),
+        ("StopComponent", "direct"),
+    ]
+    assert plan.steps[2].values == {"offset": 7.0}
+    assert plan.steps[3].topics == ("filtered/out",)
+    assert set(running) == {"source", "sink", "direct"}
+
+
+def test_an_inactive_standby_candidate_stays_on_standby(world):
+    target, expected = world
+    tgt = target("Direct")
+    want = expected(tgt)
+    filtered = spec_for(
+        K, next(c for c in target("Filtered").components if c.name == "filtered"),
+        {"in": ("source/out",)}, {"out": "filtered/out"}, default_host="local", active=False,
+    )  # fmt: skip
+    plan, _, standby = takeover_plan(Observed({**want, "filtered": filtered}), want, tgt,
+                                     {"filtered"})  # fmt: skip
+    assert plan.empty and set(standby) == {"filtered"}
+
+
+def test_spec_from_describe_round_trips(world):
+    target, expected = world
+    want = expected(target("Direct"))["sink"]
+    info = {
+        "name": "sink", "implementation": want.implementation, "host": "local",
+        "active": True, "params": dict(want.params),
+        "ports": [{"name": n, "direction": p.direction, "type": p.type, "keys": p.keys}
+                  for n, p in want.ports.items()],
+    }  # fmt: skip
+    assert spec_from_info("relay_system", info, want.implementation) == want

@@ -278,3 +278,28 @@ def test_restarted_resolution_engine_adopts_the_running_nodes(system):
     sys_.set_level(2.0)
     st = sys_.wait(lambda s: "direct" in s["engine"]["running"], "the swap back to Direct")
     assert sys_.node(st, "sink")["pid"] == before["sink"]
+
+
+def test_nodes_are_placed_on_the_host_the_model_names(system, procs, bus, tmp_path):
+    pkg = package_copy(tmp_path)
+
+    def place(data):
+        data["hosts"] = [{"name": "local"}, {"name": "h2"}]
+        for c in data["components"]:
+            c["host"] = "h2" if c["name"] in ("sink", "filtered") else "local"
+
+    edit_yaml(pkg / "system.yaml", place)
+    procs.python(
+        "rra_agent", "agent", "--system", "relay_system", "--host", "h2",
+        "--package", str(pkg), "--log-dir", str(tmp_path / "h2-logs"),
+        "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
+        name="agent-h2",
+    )  # fmt: skip
+    sys_ = system(pkg)
+    st = sys_.status
+    hosts = {n["node"]: n["host"] for n in st["nodes"]}
+    assert hosts["sink"] == "h2" and hosts["source"] == "local" and hosts["direct"] == "local"
+    assert (tmp_path / "h2-logs" / "sink.log").exists()
+    sys_.set_level(7.0)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap across hosts")
+    assert {n["node"]: n["host"] for n in st["nodes"]}["filtered"] == "h2"

@@ -426,6 +426,8 @@ def test_impossible_requests_keep_the_last_valid_selection(small):
         ("cdm.x == 2.5", {"x": "2.5"}, True),  # numeric strings are numbers for float
         ("cdm.x == 2.5", {"x": "fast"}, None),  # anything else is undefined
         ("cdm.x > 1", {"x": float("nan")}, None),
+        ("cdm.x > 1", {"x": float("inf")}, True),  # nothing in sight is far away
+        ("e ^ (-cdm.x) == 0", {"x": float("inf")}, True),
         ("cdm.n == 3", {"n": 3.0}, True),
         ("cdm.n == 3", {"n": 3.5}, None),
         ("cdm.b", {"b": 1}, None),  # not a boolean
@@ -641,7 +643,7 @@ def interpret(expr, env, fm, cv):
                 return decisive
             return None if x is None or y is None else not decisive
         case Compare(op=op, left=a, right=b):
-            x, y = _finite(interpret(a, env, fm, cv)), _finite(interpret(b, env, fm, cv))
+            x, y = _not_nan(interpret(a, env, fm, cv)), _not_nan(interpret(b, env, fm, cv))
             if x is None or y is None:
                 return None
             return {"==": x == y, "!=": x != y, "<": x < y, "<=": x <= y, ">": x > y, ">=": x >= y}[
@@ -694,6 +696,13 @@ def _finite(v):
     return v
 
 
+def _not_nan(v):
+    """Comparisons: NaN is undefined; infinities compare as numbers."""
+    if isinstance(v, float) and v != v:
+        return None
+    return v
+
+
 LEAVES = st.sampled_from(
     ["cdm.x", "cdm.y", "cdm.n", "0", "1", "2", "0.5", "-1", '"3"', "e", "pi", "Vel", "Vel.max"]
 )
@@ -736,7 +745,10 @@ def _cond_expr():
     return st.recursive(atoms, extend, max_leaves=6)
 
 
-VALUES = st.one_of(st.none(), st.sampled_from([-2.0, -0.5, 0.0, 0.5, 1.0, 3.0, 700.0, 1e300]))
+VALUES = st.one_of(
+    st.none(),
+    st.sampled_from([-2.0, -0.5, 0.0, 0.5, 1.0, 3.0, 700.0, 1e300, math.inf, -math.inf]),
+)
 
 
 @settings(
@@ -855,3 +867,15 @@ def test_overridden_defaults_do_not_reach_apply_requests(small, monkeypatch):
     engine.tick(0.1, sample(0.1, x=2.0))
     assert len(calls) == 1  # Eco then Turbo while Turbo is selected: nothing to do
     assert "Turbo" in engine.tick(0.2, sample(0.2, x=2.0)).selection
+
+
+def test_nothing_in_sight_gives_the_formulas_speed(fig5):
+    """ObstDist = inf (no obstacle in the scan): 1 - e^(-inf) = 1, MaxVel follows the battery."""
+    fm, model = fig5
+    engine = Engine(fm, ("Manipulation",), model)
+    r = engine.tick(
+        1.0,
+        {"SemLoc": ("RoomA", 1.0), "BattLev": (80.0, 1.0), "ObstDist": (math.inf, 1.0)},
+    )
+    assert r.cv["MaxVel"] == pytest.approx(0.4 + 0.4 * 0.8)
+    assert "ObstDist" not in r.undefined

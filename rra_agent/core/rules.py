@@ -147,14 +147,25 @@ _isfinite = math.isfinite
 
 
 def _fin(x: float) -> float:
-    """``x`` if it is a finite number; raises (-> undefined) for None, inf and nan."""
-    if _isfinite(x):
-        return x
+    """``x`` if it is a number other than NaN; raises (-> undefined) for None and NaN.
+
+    Infinities are values: a distance with nothing in sight is ``inf``, and comparisons and
+    ``e^(-inf) = 0`` are well defined on it."""
+    if x is None or x != x:
+        raise ValueError(x)
+    return x
+
+
+def _num(x: Any) -> float:
+    """A float (infinities included) from a number or a numeric string; raises otherwise."""
+    v = float(x)
+    if v == v and not isinstance(x, bool):
+        return v
     raise ValueError(x)
 
 
 def _fnum(x: Any) -> float:
-    """A finite float from a number or a numeric string; raises otherwise."""
+    """A *finite* float: the value a CV attribute can take; raises otherwise."""
     v = float(x)
     if _isfinite(v) and not isinstance(x, bool):
         return v
@@ -171,7 +182,7 @@ def _dyn(op: str, a: Any, b: Any) -> bool | None:
         return None
     if isinstance(a, str) != isinstance(b, str):
         try:
-            a, b = _fnum(a), _fnum(b)
+            a, b = _num(a), _num(b)
         except _ERRS:
             return None
     try:
@@ -193,7 +204,7 @@ _RUNTIME: dict[str, Any] = {
     "_ERRS": _ERRS,
     "_fin": _fin,
     "_fnum": _fnum,
-    "_num": _fnum,
+    "_num": _num,
     "_truth": _truth,
     "_dyn": _dyn,
     "_pow": math.pow,
@@ -208,10 +219,10 @@ def _as_float(v: Any) -> float | None:
     if isinstance(v, bool):
         return None
     if isinstance(v, int | float):
-        return float(v) if _isfinite(v) else None
+        return float(v) if v == v else None  # NaN is undefined, infinities are values
     if isinstance(v, str):
         try:
-            return _fnum(v)
+            return _num(v)
         except _ERRS:
             return None
     return None
@@ -231,7 +242,7 @@ def _as_str(v: Any) -> str | None:
 
 
 def _as_any(v: Any) -> Any:
-    if isinstance(v, float) and not _isfinite(v):
+    if isinstance(v, float) and v != v:
         return None
     return v if isinstance(v, bool | int | float | str) else None
 

@@ -222,6 +222,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.agents.host:configure", p),
         lazy("rra_agent.agents.host:run"),
     ),
+    "test": Command(
+        "run scenarios (*.scenario.yaml) headless and print the verdict of each expectation",
+        lambda p: _configure("rra_agent.scenario.cli:configure", p),
+        lazy("rra_agent.scenario.cli:run"),
+    ),
 }
 
 

@@ -30,7 +30,8 @@ def test_every_yaml_model_has_a_schema(gen: ModuleType) -> None:
     names = sorted(p.name for p in (ROOT / "schemas").glob("*.schema.json"))
     assert names == sorted(gen.generate())
     assert set(gen.generate()) == {
-        f"{n}.schema.json" for n in ("system", "deployment", "runtime", "measurements", "manifest")
+        f"{n}.schema.json"
+        for n in ("system", "deployment", "runtime", "measurements", "manifest", "scenario")
     }
 
 

@@ -23,6 +23,7 @@ from rra_agent.models.measurements import MeasurementsModel
 from rra_agent.models.package import Manifest
 from rra_agent.models.resolution import DeploymentResolutionModel, RuntimeResolutionModel
 from rra_agent.models.system import SystemModel
+from rra_agent.scenario.model import Scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_DIR = ROOT / "schemas"
@@ -38,6 +39,7 @@ MODELS: dict[str, tuple[type, str]] = {
     "runtime": (RuntimeResolutionModel, "RRA Run-time Resolution Model (runtime.yaml)"),
     "measurements": (MeasurementsModel, "RRA Data Types and Measurements (measurements.yaml)"),
     "manifest": (Manifest, "RRA system package manifest (rra.yaml)"),
+    "scenario": (Scenario, "RRA scenario (*.scenario.yaml)"),
 }
 
 

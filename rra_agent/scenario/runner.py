@@ -1,0 +1,553 @@
+"""Run a scenario case against a real system and judge it on what was recorded.
+
+`run_case` starts ``rra up`` as a subprocess (its own free loopback port, multicast off, its
+own run folder), connects to its bus, and records what the expectations need: every event
+(``AdaptationEvent``, ``NodeState``), selection and conflict report, every context
+measurement, the data topics the expectations name, and the parameters of the nodes they
+name (sampled every ``sample_period``). Time 0 is the deployment: the Run-time Resolution
+Engine's ``deploy`` event. The timeline is applied on schedule (each step at ``t0 + at``);
+after ``duration`` seconds the system is stopped (SIGINT, as Ctrl-C) and checked for
+processes that outlived it (every process of the run carries a marker in its environment).
+
+Evaluation is separate and pure: `evaluate_case` takes the case and the `Recording` and
+returns one `Row` per expectation (plus one per timeline step that could not be applied).
+The recording is saved as ``recording.msgpack`` next to the system's ``events.jsonl`` and
+logs; `run_case` returns it with the rows in a `CaseRun`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import heapq
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import yaml
+import zenoh
+
+from rra_agent.agents.events import read_events
+from rra_agent.agents.localhost import _die_with_parent
+from rra_agent.bus import messages as m
+from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.config import BusConfig
+from rra_agent.bus.node import decode_data, encode_data
+from rra_agent.bus.runtime import NoPeer
+from rra_agent.scenario import expectations as x
+from rra_agent.scenario.model import ScenarioCase, TimedStep
+
+MARKER_ENV = "RRA_SCENARIO_RUN"
+_EVT = m.Codec[m.EventMessage](m.EventMessage)
+_SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
+_CTX = m.Codec[m.CtxMessage](m.CtxMessage)
+_INJ = m.Codec[m.Injection](m.Injection)
+_SIGNALS = {"kill": signal.SIGKILL, "freeze": signal.SIGSTOP, "resume": signal.SIGCONT}
+
+
+class RunError(Exception):
+    """The run itself failed (the system did not come up, or died)."""
+
+
+# ---- results ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Row:
+    """One line of the verdict: an expectation (or a timeline step) and its outcome."""
+
+    text: str
+    where: str
+    outcome: x.Outcome
+    expectation: x.Expectation | None = None
+
+
+@dataclass
+class CaseRun:
+    case: ScenarioCase
+    run_dir: Path
+    rows: list[Row] = field(default_factory=list)
+    error: str | None = None
+    seconds: float = 0.0
+    recording: x.Recording | None = None
+
+    @property
+    def passed(self) -> bool:
+        return self.error is None and all(r.outcome.passed for r in self.rows)
+
+    @property
+    def failures(self) -> list[Row]:
+        return [r for r in self.rows if not r.outcome.passed]
+
+    @property
+    def events_log(self) -> Path:
+        return self.run_dir / "events.jsonl"
+
+    def artifacts(self) -> list[Path]:
+        """What to look at after a failure: the events log, recordings, the run's log."""
+        out = [self.events_log, *sorted(self.run_dir.rglob("*.rrd"))]
+        out += [self.run_dir / "recording.msgpack", self.run_dir / "up.log"]
+        return [p for p in out if p.exists()]
+
+
+def evaluate_case(case: ScenarioCase, rec: x.Recording) -> list[Row]:
+    """Judge every expectation of ``case`` on ``rec`` (pure: no I/O)."""
+    idx = x.Index(rec)
+    rows = []
+    applied = {a.name: a for a in rec.injections}
+    for t in case.timeline:
+        a = applied.get(t.name)
+        if a is not None and not a.ok:
+            where = f"{t.location.file}:{t.location.line}"
+            rows.append(
+                Row(f"step {t.name} ({t.step.action})", where, x.Outcome(False, a.detail, a.at))
+            )
+    for e in case.expectations:
+        rows.append(Row(e.text, e.where(), x.evaluate(e, idx), e))
+    return rows
+
+
+# ---- the package a case runs -----------------------------------------------------------------
+def prepare_package(case: ScenarioCase, run_dir: Path) -> Path:
+    """The package to run: the case's own, or a copy with the replacement strategies of the
+    scenario written into its Run-time Resolution Model."""
+    if case.replacement is None:
+        return case.package
+    dst = run_dir / "package"
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(
+        case.package, dst, ignore=shutil.ignore_patterns("*.scenario.yaml", "__pycache__")
+    )
+    runtime = dst / case.runtime_file
+    data = yaml.safe_load(runtime.read_text(encoding="utf-8")) if runtime.exists() else None
+    data = data or {}
+    data["replacement"] = msgspec.to_builtins(case.replacement)
+    runtime.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return dst
+
+
+def up_command(case: ScenarioCase, package: Path, run_dir: Path, endpoint: str) -> list[str]:
+    cmd = [sys.executable, "-m", "rra_agent", "up", str(package), "--run-dir", str(run_dir)]
+    cmd += ["--connect", endpoint, "--no-multicast", "--lease-ms", "500", "-q"]
+    if case.select:
+        cmd += ["--select", ",".join(case.select)]
+    if not case.adaptation:
+        cmd.append("--no-adaptation")
+    return cmd
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# ---- recording -------------------------------------------------------------------------------
+class Recorder:
+    """Bus callbacks (on Zenoh's thread) appending what they receive."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.events: list[m.EventMessage] = []
+        self.selections: list[m.SelectionMessage] = []
+        self.measurements: list[m.Measurement] = []
+        self.data: list[x.DataSample] = []
+        self.params: list[x.ParamSample] = []
+        self.deployed = threading.Event()
+        self.deploy_event: m.AdaptationEvent | None = None
+        self.hosts: dict[str, str] = {}
+        self._merged_size = 0
+
+    def on_event(self, sample: Any) -> None:
+        try:
+            ev = _EVT.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        self.add_event(ev)
+
+    def add_event(self, ev: m.EventMessage) -> None:
+        with self.lock:
+            self.events.append(ev)
+            if isinstance(ev, m.NodeState):
+                self.hosts[ev.node] = ev.host
+        if isinstance(ev, m.AdaptationEvent) and ev.kind == "deploy" and self.deploy_event is None:
+            self.deploy_event = ev
+            self.deployed.set()
+
+    def on_selection(self, sample: Any) -> None:
+        with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+            msg = _SEL.decode(sample.payload.to_bytes())
+            with self.lock:
+                self.selections.append(msg)
+
+    def on_ctx(self, sample: Any) -> None:
+        with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+            msg = _CTX.decode(sample.payload.to_bytes())
+            with self.lock:
+                self.measurements.append(msg)
+
+    def on_data(self, topic: str) -> Callable[[Any], None]:
+        def callback(sample: Any) -> None:
+            try:
+                value = decode_data(sample.payload.to_bytes())
+            except ValueError:
+                return
+            att = sample.attachment
+            stamp = m.unpack_stamp(att.to_bytes() if att else None) or time.time()
+            with self.lock:
+                self.data.append(x.DataSample(stamp, topic, value))
+
+        return callback
+
+    def merge_log(self, path: Path) -> None:
+        """Add the events of the system's log that the subscription missed."""
+        size = path.stat().st_size if path.exists() else 0
+        if size == self._merged_size:
+            return
+        self._merged_size = size
+        enc = msgspec.msgpack.Encoder()
+        with self.lock:
+            seen = {enc.encode(e) for e in self.events}
+        for ev in read_events(path):
+            if enc.encode(ev) not in seen:
+                self.add_event(ev)
+
+
+# ---- processes of the run ---------------------------------------------------------------------
+def marked_pids(marker: str) -> list[int]:
+    """Live (non-zombie) processes whose environment holds ``RRA_SCENARIO_RUN=marker``."""
+    needle = f"{MARKER_ENV}={marker}".encode()
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            if needle not in (entry / "environ").read_bytes().split(b"\0"):
+                continue
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        if stat.rsplit(")", 1)[1].split()[0] != "Z":
+            out.append(int(entry.name))
+    return sorted(out)
+
+
+def _wait_listening(port: int, proc: subprocess.Popen[bytes], timeout: float) -> None:
+    """Until ``rra up`` accepts connections on ``port`` (RunError if it exits first)."""
+
+    def listening() -> bool:
+        if proc.poll() is not None:
+            raise RunError(f"rra up exited with status {proc.returncode} before listening")
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.settimeout(0.2)
+            return s.connect_ex(("127.0.0.1", port)) == 0
+
+    try:
+        wait_until(listening, timeout, f"rra up to listen on port {port}", interval=0.02)
+    except TimeoutError as e:
+        raise RunError(str(e)) from None
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    if not path.exists():
+        return ""
+    text = path.read_text(errors="replace").splitlines()[-lines:]
+    return "\n".join("    " + t for t in text)
+
+
+# ---- the run ---------------------------------------------------------------------------------
+class _Run:
+    def __init__(self, case: ScenarioCase, run_dir: Path, startup_timeout: float) -> None:
+        self.case = case
+        self.run_dir = run_dir
+        self.startup_timeout = startup_timeout
+        self.rec = Recorder()
+        self.marker = uuid.uuid4().hex
+        self.applied: dict[str, x.Applied] = {}
+        self.t0: float | None = None
+        self.end: float = 0.0
+        self.orphans: list[int] | None = None
+
+    def execute(self) -> None:
+        case, run_dir = self.case, self.run_dir
+        package = prepare_package(case, run_dir)
+        port = free_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        env = {**os.environ, MARKER_ENV: self.marker, "RERUN_ANALYTICS": "0"}
+        with (run_dir / "up.log").open("wb") as log:
+            proc = subprocess.Popen(
+                up_command(case, package, run_dir, endpoint),
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # a Ctrl-C of the test runner reaches us, not it
+                preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+            )
+        try:
+            _wait_listening(port, proc, self.startup_timeout)
+            self.record(endpoint, proc)
+        finally:
+            self.stop(proc)
+
+    def record(self, endpoint: str, proc: subprocess.Popen[bytes]) -> None:
+        bus = BusConfig(connect=[endpoint], multicast=False, lease_ms=500)
+        with BusClient(bus, self.case.system) as client:
+            keys, s, rec = client.keys, client.session, self.rec
+            subs = [
+                s.declare_subscriber(keys.events, rec.on_event),
+                s.declare_subscriber(keys.selection, rec.on_selection),
+                s.declare_subscriber(keys.ctx_all, rec.on_ctx),
+            ]
+            topics = self.case.data_topics()
+            subs += [s.declare_subscriber(keys.data(t), rec.on_data(t)) for t in topics]
+            block = zenoh.CongestionControl.BLOCK
+            publishers = {
+                k: s.declare_publisher(f"{keys.prefix}/{k}", congestion_control=block)
+                for k in {t.key for t in self.case.timeline if t.key}
+                | {f"inject/{t.step.inject.kind}" for t in self.case.timeline if t.step.inject}
+            }
+            try:
+                self.t0 = self.wait_deployed(proc)
+                sampler = _Sampler(client, rec, self.case, self.t0)
+                sampler.start()
+                try:
+                    self.play(client, publishers, self.t0)
+                finally:
+                    sampler.stop()
+                self.end = time.time() - self.t0
+            finally:
+                for sub in subs:
+                    sub.undeclare()
+                for pub in publishers.values():
+                    pub.undeclare()
+
+    def wait_deployed(self, proc: subprocess.Popen[bytes]) -> float:
+        deadline = time.monotonic() + self.startup_timeout
+        log = self.run_dir / "events.jsonl"
+        while not self.rec.deployed.wait(0.1):
+            self.rec.merge_log(log)  # in case the deploy event came before we listened
+            if self.rec.deployed.is_set():
+                break
+            if proc.poll() is not None:
+                raise RunError(f"rra up exited with status {proc.returncode} before deploying")
+            if time.monotonic() >= deadline:
+                raise RunError(f"no deployment within {self.startup_timeout:g} s")
+        ev = self.rec.deploy_event
+        assert ev is not None
+        if ev.outcome != "ok":
+            raise RunError(f"deployment failed: {ev.message}")
+        return ev.stamp
+
+    # -- the timeline
+    def schedule(self) -> Iterator[tuple[float, int, TimedStep]]:
+        """(time, order, step) of every action, publish repeats expanded."""
+        for i, t in enumerate(self.case.timeline):
+            yield t.step.at, i, t
+            pub = t.step.publish
+            if pub is not None and pub.every:
+                until = min(self.case.duration, pub.until if pub.until is not None else 1e9)
+                n = 1
+                while t.step.at + n * pub.every <= until + 1e-9:
+                    yield t.step.at + n * pub.every, i, t
+                    n += 1
+
+    def play(self, client: BusClient, publishers: dict[str, Any], t0: float) -> None:
+        queue = list(self.schedule())
+        heapq.heapify(queue)
+        end = t0 + self.case.duration
+        while queue:
+            at, _, step = heapq.heappop(queue)
+            _sleep_until(t0 + at)
+            stamp = time.time()
+            ok, detail = self.apply(client, publishers, step, stamp)
+            if step.name not in self.applied:  # a repeated publish: its first time counts
+                self.applied[step.name] = x.Applied(
+                    name=step.name, at=at, stamp=stamp, ok=ok, detail=detail
+                )
+        _sleep_until(end)
+
+    def apply(
+        self, client: BusClient, publishers: dict[str, Any], t: TimedStep, stamp: float
+    ) -> tuple[bool, str]:
+        step = t.step
+        try:
+            if step.set_params is not None:
+                sp = step.set_params
+                return _reply(client.node(sp.node, m.SetParams(params=dict(sp.params))))
+            if step.publish is not None:
+                publishers[t.key].put(
+                    encode_data(step.publish.data), attachment=m.pack_stamp(stamp)
+                )
+                return True, ""
+            if step.malformed is not None:
+                publishers[t.key].put(bytes.fromhex(step.malformed.hex))
+                return True, ""
+            if step.inject is not None:
+                inj = step.inject
+                msg = m.Inject(kind=inj.kind, target=inj.target, args=dict(inj.args), stamp=stamp)
+                publishers[f"inject/{inj.kind}"].put(_INJ.encode(msg))
+                return True, ""
+            action = step.action
+            node = getattr(step, action)
+            host = self.rec.hosts.get(node, "local")
+            return _reply(client.host(host, m.SignalNode(node=node, signal=int(_SIGNALS[action]))))
+        except NoReply as e:
+            return False, str(e)
+
+    # -- the end
+    def stop(self, proc: subprocess.Popen[bytes]) -> None:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        survivors = marked_pids(self.marker)
+        for pid in survivors:  # ours, by the marker: never leave them behind
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        self.orphans = survivors
+
+    def recording(self) -> x.Recording | None:
+        if self.t0 is None:
+            return None
+        rec, case = self.rec, self.case
+        rec.merge_log(self.run_dir / "events.jsonl")
+        with rec.lock:
+            return x.Recording(
+                system=case.system,
+                t0=self.t0,
+                end=self.end,
+                deployment=sorted(case.deployment),
+                initial_features=sorted(case.initial_features),
+                initial_cv=dict(case.initial_cv),
+                swap_pairs=list(case.swap_pairs),
+                events=list(rec.events),
+                selections=list(rec.selections),
+                measurements=list(rec.measurements),
+                data=list(rec.data),
+                params=list(rec.params),
+                injections=list(self.applied.values()),
+                orphans=self.orphans,
+            )
+
+
+class _Sampler:
+    """Samples the parameters of the nodes the expectations read, every ``sample_period``."""
+
+    def __init__(self, client: BusClient, rec: Recorder, case: ScenarioCase, t0: float) -> None:
+        self.client, self.rec, self.case, self.t0 = client, rec, case, t0
+        self.nodes = sorted(case.param_nodes())
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="param-sampler", daemon=True)
+
+    def start(self) -> None:
+        if self.nodes:
+            self.thread.start()
+
+    def stop(self) -> None:
+        self.done.set()
+        if self.thread.is_alive():
+            self.thread.join()
+
+    def _run(self) -> None:
+        period = self.case.sample_period
+        n = 0
+        while not self.done.is_set():
+            for node in self.nodes:
+                stamp = time.time()
+                try:
+                    reply = self.client.node(node, m.Describe(), timeout=min(1.0, 4 * period))
+                except NoReply:
+                    continue
+                if isinstance(reply, m.Ok) and isinstance(reply.result, dict):
+                    params = reply.result.get("params", {})
+                    with self.rec.lock:
+                        self.rec.params.append(x.ParamSample(stamp, node, dict(params)))
+            n += 1
+            # The schedule: sample k at t0 + k * period (skipping any missed while blocked).
+            next_at = self.t0 + n * period
+            while next_at < time.time():
+                n += 1
+                next_at = self.t0 + n * period
+            self.done.wait(next_at - time.time())
+
+
+def _reply(reply: m.Reply) -> tuple[bool, str]:
+    if isinstance(reply, m.Err):
+        return False, f"{reply.message} ({reply.code})"
+    return True, ""
+
+
+def _sleep_until(wall: float) -> None:
+    """Wait for a scheduled wall-clock time (the timeline is a schedule, not a sync)."""
+    delay = wall - time.time()
+    if delay > 0:
+        time.sleep(delay)
+
+
+def run_case(case: ScenarioCase, run_dir: Path, *, startup_timeout: float = 60.0) -> CaseRun:
+    """Run ``case`` in ``run_dir`` (created; the system's logs and events go there too)."""
+    started = time.monotonic()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    run = _Run(case, run_dir, startup_timeout)
+    error = None
+    try:
+        run.execute()
+    except RunError as e:
+        tail = _tail(run_dir / "up.log")
+        error = f"{e}" + (f"\n  rra up log ({run_dir / 'up.log'}):\n{tail}" if tail else "")
+    except NoPeer as e:
+        error = f"cannot connect to the system: {e}"
+    rec = run.recording()
+    result = CaseRun(case, run_dir, error=error, recording=rec)
+    if rec is not None:
+        (run_dir / "recording.msgpack").write_bytes(x.save_recording(rec))
+        result.rows = evaluate_case(case, rec)
+    result.seconds = time.monotonic() - started
+    (run_dir / "results.txt").write_text(render_rows([result]) + "\n", encoding="utf-8")
+    return result
+
+
+# ---- the verdict as a table --------------------------------------------------------------------
+def render_rows(runs: list[CaseRun], *, width: int = 60) -> str:
+    """``SCENARIO  EXPECTATION  OUTCOME  OBSERVED`` for every row of every run."""
+    table = [("SCENARIO", "EXPECTATION", "OUTCOME", "OBSERVED")]
+    for run in runs:
+        if run.error is not None:
+            table.append((run.case.id, "(the run)", "ERROR", run.error.splitlines()[0]))
+        for r in run.rows:
+            text = r.text if len(r.text) <= width else r.text[: width - 3] + "..."
+            table.append(
+                (run.case.id, text, "pass" if r.outcome.passed else "FAIL", r.outcome.observed)
+            )
+    widths = [max(len(row[i]) for row in table) for i in range(3)]
+    return "\n".join(
+        "  ".join(cell.ljust(w) for cell, w in zip(row[:3], widths, strict=True)) + "  " + row[3]
+        for row in table
+    )
+
+
+def describe_failure(run: CaseRun) -> str:
+    """What failed, where (scenario file:line) and what was observed; the kept artefacts."""
+    lines = [f"scenario {run.case.id} ({run.case.file}) failed after {run.seconds:.1f} s:"]
+    if run.error is not None:
+        lines.append(f"  the run failed: {run.error}")
+    for r in run.failures:
+        lines.append(f"{r.where}: expectation failed: {r.text}")
+        lines.append(f"    observed: {r.outcome.observed}")
+    for p in run.artifacts():
+        lines.append(f"  kept: {p}")
+    return "\n".join(lines)

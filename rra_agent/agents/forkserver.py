@@ -34,7 +34,7 @@ from typing import IO, Any
 
 import msgspec
 
-from rra_agent.agents.localhost import _die_with_parent
+from rra_agent.agents.localhost import die_with_parent
 from rra_agent.bus.messages import NodeSpec
 
 #: What every Python node needs: imported once, in the zygote.
@@ -54,7 +54,7 @@ def _child(request: dict[str, Any], fds: list[int]) -> None:
     try:
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
         signal.set_wakeup_fd(-1)
-        _die_with_parent()
+        die_with_parent()
         log = os.open(request["log"], os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         null = os.open(os.devnull, os.O_RDONLY)
         os.dup2(null, 0)
@@ -138,7 +138,7 @@ class ForkServer:
             [sys.executable, "-m", "rra_agent.agents.forkserver", *preload],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+            preexec_fn=die_with_parent if sys.platform == "linux" else None,
         )
         assert self.proc.stdin is not None and self.proc.stdout is not None
         self._in = self.proc.stdin

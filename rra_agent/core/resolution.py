@@ -78,6 +78,7 @@ __all__ = [
     "StopComponent",
     "SwapComponent",
     "diff",
+    "peers_of",
     "resolve_deployment",
     "resolve_runtime",
     "subscriptions",
@@ -707,7 +708,7 @@ def _wiring(c: Component, subs: Mapping[tuple[str, str], tuple[str, ...]]) -> di
     }
 
 
-def _peers(system: SystemModel, name: str) -> frozenset[tuple[str, str]]:
+def peers_of(system: SystemModel, name: str) -> frozenset[tuple[str, str]]:
     """The endpoints a component is connected to: ("in", publisher) / ("out", subscriber)."""
     out = set()
     for conn in system.connections:
@@ -722,11 +723,11 @@ def _peers(system: SystemModel, name: str) -> frozenset[tuple[str, str]]:
 def _pair_swaps(
     current: SystemModel, target: SystemModel, gone: list[str], new: list[str]
 ) -> list[tuple[str, str]]:
-    new_peers = {n: _peers(target, n) for n in new}
+    new_peers = {n: peers_of(target, n) for n in new}
     pairs: list[tuple[str, str]] = []
     taken: set[str] = set()
     for old in gone:
-        peers = _peers(current, old)
+        peers = peers_of(current, old)
         match = next((n for n in new if n not in taken and peers and new_peers[n] == peers), None)
         if match is not None:
             taken.add(match)

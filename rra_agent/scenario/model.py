@@ -27,7 +27,7 @@ from yaml.nodes import ScalarNode
 from rra_agent.agents.deployment import Deployment
 from rra_agent.bus.keys import check_topic
 from rra_agent.core.features import complete_deployment, default_runtime_selection
-from rra_agent.core.resolution import _peers, resolve_deployment, topic_of
+from rra_agent.core.resolution import peers_of, resolve_deployment, topic_of
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
 from rra_agent.models.base import Model
 from rra_agent.models.loader import load_package
@@ -559,7 +559,7 @@ def _bind_events(exp: x.Expectation, fm: Any) -> x.Expectation:
 def swap_pairs(system: Any) -> tuple[tuple[str, str], ...]:
     """Ordered pairs of components with the same (non-empty) peers: those the run-time
     resolution swaps for each other (`rra_agent.core.resolution.diff`'s criterion)."""
-    peers = {c.name: _peers(system, c.name) for c in system.components}
+    peers = {c.name: peers_of(system, c.name) for c in system.components}
     return tuple(
         (a, b) for a in peers for b in peers if a != b and peers[a] and peers[a] == peers[b]
     )

@@ -38,7 +38,7 @@ import yaml
 import zenoh
 
 from rra_agent.agents.events import read_events
-from rra_agent.agents.localhost import _die_with_parent
+from rra_agent.agents.localhost import die_with_parent
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.config import BusConfig
@@ -291,7 +291,7 @@ class _Run:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # a Ctrl-C of the test runner reaches us, not it
-                preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+                preexec_fn=die_with_parent if sys.platform == "linux" else None,
             )
         try:
             _wait_listening(port, proc, self.startup_timeout)

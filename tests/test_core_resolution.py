@@ -621,6 +621,7 @@ def test_quadcopter_proploss_swaps_the_controller() -> None:
     assert touching(out, {"proploss_controller"}) == {
         ("estimator.estimate", "proploss_controller.estimate"),
         ("trajectory_generator.setpoint", "proploss_controller.setpoint"),
+        ("vehicle_simulator.telemetry", "proploss_controller.telemetry"),
         ("proploss_controller.motor_cmd", "vehicle_simulator.motor_cmd"),
     }
     assert subscriptions(out)[("vehicle_simulator", "motor_cmd")] == (
@@ -697,6 +698,7 @@ def test_proploss_is_a_swap_plus_the_rewire_of_the_simulator_input() -> None:
             inputs={
                 "estimate": ("estimator/estimate",),
                 "setpoint": ("trajectory_generator/setpoint",),
+                "telemetry": ("vehicle_simulator/telemetry",),
             },
             outputs={"motor_cmd": "proploss_controller/motor_cmd"},
         ),

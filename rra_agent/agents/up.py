@@ -98,6 +98,9 @@ def run(args: argparse.Namespace) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
+    # A new run starts from the default selection; the engine's state file only carries the
+    # applied selection across a restart of the engine *within* a run.
+    (run_dir / "resolution-state.json").unlink(missing_ok=True)
     # -- Rerun logging (rra_agent.viz): the children inherit the configuration --
     from rra_agent.viz import recording
 

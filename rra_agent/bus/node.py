@@ -51,12 +51,18 @@ def decode_data(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     return value
 
 
+#: A raw subscription's callback: (key, payload, sender's stamp or None).
+RawCallback = Callable[[str, bytes, "float | None"], None]
+
+
 class Transport(Protocol):
     """What `NodeCore` needs from the bus (or from a test harness)."""
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None: ...
 
     def rebind(self, port: str, direction: str, keys: list[str]) -> None: ...
+
+    def subscribe(self, key_expr: str, callback: RawCallback) -> None: ...
 
 
 class NodeContext:
@@ -97,6 +103,17 @@ class NodeContext:
 
     def log(self, message: str) -> None:
         self._core.log(message)
+
+    def subscribe(self, key_expr: str, callback: RawCallback) -> None:
+        """Listen on a key expression outside the node's data ports, e.g.
+        ``Keys(self.system).inject_all`` (fault injections).
+
+        ``callback(key, payload, stamp)`` gets the raw payload (decode it yourself) and runs
+        under the node's lock, like `Node.on_message`; an exception in it is counted and
+        logged. Call it from `Node.on_start`; the subscription lasts as long as the node and
+        is not a port (no Rewire, not in Describe).
+        """
+        self._core.subscribe_raw(key_expr, callback)
 
 
 class Node:
@@ -257,6 +274,13 @@ class NodeCore:
         self.published += 1
         return True
 
+    def subscribe_raw(self, key_expr: str, callback: RawCallback) -> None:
+        def guarded(key: str, payload: bytes, stamp: float | None) -> None:
+            with self.lock:
+                self._guard(f"subscription {key_expr}", callback, key, payload, stamp)
+
+        self.transport.subscribe(key_expr, guarded)
+
     # ---- control -----------------------------------------------------------------------
     def handle(self, request: m.NodeRequest) -> m.Reply:
         """Answer one control request; never raises."""
@@ -363,12 +387,16 @@ class _CaptureTransport:
     def __init__(self) -> None:
         self.published: list[tuple[str, bytes, float]] = []
         self.bindings: dict[str, list[str]] = {}
+        self.raw: dict[str, list[RawCallback]] = {}
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
         self.published.append((port, payload, stamp))
 
     def rebind(self, port: str, direction: str, keys: list[str]) -> None:
         self.bindings[port] = keys
+
+    def subscribe(self, key_expr: str, callback: RawCallback) -> None:
+        self.raw.setdefault(key_expr, []).append(callback)
 
 
 class NodeHarness:
@@ -420,6 +448,14 @@ class NodeHarness:
 
     def send_raw(self, port: str, payload: bytes) -> None:
         self.core.deliver(port, payload, None)
+
+    def deliver_raw(self, key_expr: str, payload: bytes, stamp: float | None = None) -> int:
+        """Hand ``payload`` to the node's raw subscriptions on exactly ``key_expr`` (as the
+        node subscribed it, e.g. ``rra/test/inject/**``); returns how many got it."""
+        callbacks = self.transport.raw.get(key_expr, [])
+        for cb in callbacks:
+            cb(key_expr, payload, stamp)
+        return len(callbacks)
 
     def step(self, now: float | None = None) -> None:
         if now is not None:

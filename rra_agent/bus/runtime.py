@@ -74,6 +74,8 @@ class ZenohTransport:
         self.core: NodeCore | None = None
         self.publishers: dict[str, zenoh.Publisher] = {}
         self.subscribers: dict[str, list[Any]] = {}
+        #: Raw subscriptions (`NodeContext.subscribe`), undeclared when the session closes.
+        self.raw: list[Any] = []
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
         self.publishers[port].put(payload, attachment=_STAMP.pack(stamp))
@@ -90,6 +92,16 @@ class ZenohTransport:
         self.subscribers[port] = [
             self.session.declare_subscriber(k, self._on_sample(port)) for k in keys
         ]
+
+    def subscribe(self, key_expr: str, callback) -> None:
+        unpack = _STAMP.unpack
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            att = sample.attachment
+            stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
+            callback(str(sample.key_expr), sample.payload.to_bytes(), stamp)
+
+        self.raw.append(self.session.declare_subscriber(key_expr, on_sample))
 
     def _on_sample(self, port: str):
         unpack = _STAMP.unpack
@@ -143,11 +155,13 @@ class NodeRuntime:
             )
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys))
-            transport.core = core
             queryable = session.declare_queryable(
                 self.keys.node_ctl(self.spec.name), self._on_query(core)
             )
             core.start()
+            # Only now: a sample delivered before on_start would meet a half-set-up node
+            # (samples arriving earlier are dropped, as if they had come before the ports).
+            transport.core = core
             token = session.liveliness().declare_token(
                 self.keys.alive(self.spec.host, self.spec.name)
             )

@@ -1,0 +1,394 @@
+"""The quadcopter case study's components as Nodes (scenarios/quadcopter/system.yaml).
+
+- `VehicleSimulator`: MuJoCo vehicle in real time; ``motor_cmd`` in; ``state``,
+  ``telemetry``, ``events`` out; fault injections from ``rra/<system>/inject/**``.
+- `TrajectoryGenerator`: ``setpoint`` at ``rate_hz`` (mode set by the Flight feature).
+- `Estimator`: one ``estimate`` per ``state`` sample.
+- `Controller`: one ``motor_cmd`` per ``estimate`` (four motors).
+- `ProplossController`: same ports as `Controller`; runs in standby (computing, its
+  publishes dropped by the SDK) and publishes its latest command the moment it is activated.
+
+The logic lives in `rra_agent.sim.control` and `rra_agent.sim.model`; these classes only map
+messages and parameters onto it.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from typing import Any
+
+import numpy as np
+
+from rra_agent.bus import messages as m
+from rra_agent.bus.keys import Keys
+from rra_agent.bus.node import Node, NodeContext
+from rra_agent.sim import control
+from rra_agent.sim.model import N_MOTORS, Quadcopter, QuadParams
+
+_INJECTIONS = m.Codec[m.Injection](m.Injection)
+
+
+# ---- simulator ---------------------------------------------------------------------------------
+class VehicleSimulator(Node):
+    """The simulated quadcopter, stepped in real time by `step` (``rate_hz`` 500).
+
+    Parameters: ``timestep`` (physics step, s), ``realtime_factor`` (sim seconds per wall
+    second; 0 = one physics step per call, unpaced), ``telemetry_rate_hz``,
+    ``initial_position`` ([x, y, z], m), ``max_catchup`` (physics steps per call at most),
+    ``noise_seed``.
+
+    Real-time policy: sim time is frozen, the vehicle hovering at ``initial_position`` with
+    its rotors at hover speed, until the first motor command arrives ("armed"). From then
+    on each call runs as many physics steps as the wall clock asks for (normally one), at
+    most ``max_catchup``; if it fell further behind (a stalled process), the remainder is
+    dropped: sim time slips behind wall time (counted in ``dropped_steps``) rather than
+    running a burst the controllers never see. Motor commands are held (zero-order hold)
+    until the next one. Each call publishes one ``state`` (with the configured sensor
+    noise) and, at ``telemetry_rate_hz``, one ``telemetry`` sample.
+
+    ``events`` (``SimEvent``: kind, sim_time, wall_time, detail) marks the moments that
+    matter: ``armed``, ``fault`` (an injection applied; detail = kind and args),
+    ``controller`` (the first physics step using the command of a controller other than
+    the previous one; detail = its name), ``crash`` (detail = why).
+
+    Injections (`rra_agent.bus.messages.Inject` on ``Keys(system).inject_all``, target ""
+    or this node's name; other kinds and targets are ignored): ``break_motor {motor: k}``,
+    ``degrade_motor {motor: k, efficiency: x}``, ``sensor_noise {std: s}`` (optional per
+    channel: position, velocity, attitude, gyro), ``clear_faults {}``; motors are 0-based
+    (``k`` is accepted for ``motor``). They are queued by whatever thread receives them
+    and applied at the start of the next `step`.
+    """
+
+    rate_hz = 500.0
+
+    def __init__(self, ctx: NodeContext) -> None:
+        # Set up here, not in on_start: samples may be delivered before on_start runs.
+        super().__init__(ctx)
+        pos = self.ctx.param("initial_position", [0.0, 0.0, 1.5])
+        self.quad = Quadcopter(
+            QuadParams(),
+            timestep=float(self.ctx.param("timestep", 0.002)),
+            position=tuple(float(v) for v in pos),
+            seed=int(self.ctx.param("noise_seed", 0)),
+        )
+        self.armed = False
+        self.dropped_steps = 0
+        self._wall0: float | None = None
+        self._pending: collections.deque[m.Inject] = collections.deque()
+        self._controller = ""  # whose command is held
+        self._announce: str | None = None  # a new controller's command not yet stepped
+        self._crash_reported = False
+        self._next_telemetry = 0.0
+
+    def on_start(self) -> None:
+        self._subscribe_injections()
+
+    # ---- inputs ----------------------------------------------------------------------------
+    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
+        if port != "motor_cmd":
+            return
+        speeds = data.get("speeds")
+        try:
+            self.quad.set_command(speeds)
+        except (ValueError, TypeError) as e:
+            self.ctx.log(f"ignored motor command: {e}")
+            return
+        sender = str(data.get("controller", ""))
+        if sender != self._controller:
+            self._controller = sender
+            self._announce = sender
+
+    def inject(self, kind: str, args: dict[str, Any] | None = None, target: str = "") -> None:
+        """Queue an injection (applied at the next step); thread-safe."""
+        self._pending.append(m.Inject(kind=kind, target=target, args=dict(args or {})))
+
+    def on_injection(self, payload: bytes) -> None:
+        """A raw ``Injection`` sample (any thread): decode and queue it."""
+        try:
+            self._pending.append(_INJECTIONS.decode(payload))
+        except Exception as e:  # malformed: drop, the bus callback must not raise
+            self.ctx.log(f"dropped malformed injection: {e}")
+
+    # ---- stepping --------------------------------------------------------------------------
+    def step(self, now: float) -> None:
+        while self._pending:
+            self._apply(self._pending.popleft())
+        if not self.armed and self._announce is not None:
+            self.armed = True
+            self._wall0 = None
+            self._event("armed", self._announce)
+        if not self.armed or self._advance(now) > 0:
+            self._publish()
+
+    def _advance(self, now: float) -> int:
+        """Run the physics steps due at wall time ``now``; return how many ran."""
+        q = self.quad
+        rtf = float(self.ctx.param("realtime_factor", 1.0))
+        n = 1
+        if rtf > 0:
+            if self._wall0 is None:
+                self._wall0 = now - (q.time + q.dt) / rtf
+            due = math.floor(((now - self._wall0) * rtf - q.time) / q.dt + 1e-6)
+            limit = max(1, int(self.ctx.param("max_catchup", 5)))
+            if due > limit:  # fell behind: drop the rest (sim time slips)
+                self.dropped_steps += due - limit
+                self._wall0 += (due - limit) * q.dt / rtf
+                due = limit
+            n = due
+        for _ in range(n):
+            q.step()
+            if self._announce is not None:
+                self._event("controller", self._announce)
+                self._announce = None
+        if q.crashed and not self._crash_reported:
+            self._crash_reported = True
+            self._event("crash", q.crash_reason)
+        return n
+
+    def _publish(self) -> None:
+        q = self.quad
+        self.ctx.publish("state", q.measured_state())
+        if q.time + 1e-9 >= self._next_telemetry or not self.armed:
+            self.ctx.publish("telemetry", q.telemetry())
+            rate = float(self.ctx.param("telemetry_rate_hz", 500.0))
+            self._next_telemetry = q.time + (1.0 / rate if rate > 0 else 0.0)
+
+    def _event(self, kind: str, detail: str) -> None:
+        self.ctx.publish(
+            "events",
+            {
+                "kind": kind,
+                "sim_time": self.quad.time,
+                "wall_time": self.ctx.now(),
+                "detail": detail,
+            },
+        )
+
+    def _apply(self, inj: m.Inject) -> None:
+        if inj.target not in ("", self.ctx.name):
+            return
+        args = inj.args
+        q = self.quad
+        try:
+            match inj.kind:
+                case "break_motor":
+                    q.break_motor(_motor(args))
+                case "degrade_motor":
+                    q.degrade_motor(_motor(args), float(args.get("efficiency", 1.0)))
+                case "sensor_noise":
+                    channels = {c: float(v) for c, v in args.items() if c != "std"}
+                    q.set_sensor_noise(float(args.get("std", 0.0)), **channels)
+                case "clear_faults":
+                    q.clear_faults()
+                case _:
+                    return  # not ours
+        except (ValueError, TypeError) as e:
+            self.ctx.log(f"refused injection {inj.kind} {args}: {e}")
+            return
+        detail = f"{inj.kind} " + " ".join(f"{k}={v}" for k, v in sorted(args.items()))
+        self._event("fault", detail.strip())
+
+    # ---- injection subscription ------------------------------------------------------------
+    def _subscribe_injections(self) -> None:
+        """Listen on ``rra/<system>/inject/**`` (a raw subscription the runtime owns; in a
+        `NodeHarness`, deliver with ``deliver_raw`` or call `on_injection` directly)."""
+        key = Keys(self.ctx.system).inject_all
+        self.ctx.subscribe(key, lambda _key, payload, _stamp: self.on_injection(payload))
+
+
+def _motor(args: dict[str, Any]) -> int:
+    k = args.get("motor", args.get("k"))
+    if isinstance(k, bool) or not isinstance(k, int):
+        raise ValueError(f"motor must be an int 0..{N_MOTORS - 1}, got {k!r}")
+    return k
+
+
+# ---- trajectory ---------------------------------------------------------------------------------
+class TrajectoryGenerator(Node):
+    """Publishes ``setpoint`` (``TrajectorySetpoint``) at ``rate_hz`` (default 100).
+
+    Parameters: ``mode`` (hover, waypoints, circle), ``altitude`` (m), ``radius`` (m),
+    ``speed`` (m/s), ``waypoints`` ([[x, y] or [x, y, z], ...]), ``start_delay`` (s of
+    hovering at the start point before the motion begins). Trajectory time is wall time
+    since the node started. A parameter change rebuilds the trajectory (time goes on); an
+    invalid combination is refused with a log line and the previous one kept.
+    """
+
+    rate_hz = 100.0
+
+    def __init__(self, ctx: NodeContext) -> None:
+        super().__init__(ctx)
+        self.trajectory = self._build()
+        self._t0: float | None = None
+
+    def _build(self) -> control.Trajectory:
+        param = self.ctx.param
+        return control.Trajectory(
+            mode=str(param("mode", "hover")),
+            altitude=float(param("altitude", 1.5)),
+            radius=float(param("radius", 1.0)),
+            speed=float(param("speed", 0.5)),
+            waypoints=tuple(tuple(float(c) for c in w) for w in param("waypoints", []) or []),
+            start_delay=float(param("start_delay", 2.0)),
+        )
+
+    def on_params(self, changed: dict[str, Any]) -> None:
+        try:
+            self.trajectory = self._build()
+        except (ValueError, TypeError) as e:
+            self.ctx.log(f"kept the previous trajectory: {e}")
+
+    def step(self, now: float) -> None:
+        if self._t0 is None:
+            self._t0 = now
+        self.ctx.publish("setpoint", self.trajectory.sample(now - self._t0))
+
+
+# ---- estimator ----------------------------------------------------------------------------------
+class Estimator(Node):
+    """One ``estimate`` per ``state`` sample (event-driven: the simulator's 500 Hz).
+
+    ``position_noise``: the sensor noise std to filter for (`control.Estimator`); 0 = pass
+    the state through.
+    """
+
+    def __init__(self, ctx: NodeContext) -> None:
+        super().__init__(ctx)
+        self.filter = control.Estimator(float(self.ctx.param("position_noise", 0.0)))
+
+    def on_params(self, changed: dict[str, Any]) -> None:
+        if "position_noise" in changed:
+            self.filter = control.Estimator(float(self.ctx.param("position_noise", 0.0)))
+
+    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
+        if port == "state":
+            self.ctx.publish("estimate", self.filter.update(data))
+
+
+# ---- controllers --------------------------------------------------------------------------------
+class _ControllerNode(Node):
+    """What both controllers share: latest setpoint, telemetry, one command per estimate."""
+
+    def __init__(self, ctx: NodeContext) -> None:
+        # Set up here, not in on_start: samples (and the spec's state) may come first.
+        super().__init__(ctx)
+        self.setpoint: dict[str, Any] | None = None
+        self.estimate: dict[str, Any] | None = None
+        self.failed_motor: int | None = None
+        self.last_command: list[float] | None = None
+        self.setup()
+
+    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
+        if port == "setpoint":
+            self.setpoint = data
+        elif port == "telemetry":
+            self.on_telemetry(data)
+        elif port == "estimate":
+            self.estimate = data
+            if self.setpoint is None:  # hold the first position until a setpoint arrives
+                self.setpoint = _hold(data)
+            cmd = self.compute(data, self.setpoint)
+            if cmd is not None:
+                self.last_command = [float(w) for w in cmd]
+                self.ctx.publish("motor_cmd", self._message(self.last_command))
+
+    def _message(self, speeds: list[float]) -> dict[str, Any]:
+        return {"speeds": speeds, "controller": self.ctx.name}
+
+    # ---- what a controller provides ------------------------------------------------------
+    def setup(self) -> None:
+        raise NotImplementedError
+
+    def on_telemetry(self, data: dict[str, Any]) -> None:
+        if self.failed_motor is None:
+            self.failed_motor = control.failed_motor(data)
+
+    def compute(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray | None:
+        raise NotImplementedError
+
+
+def _hold(est: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "time": est.get("time", 0.0),
+        "position": list(est["position"]),
+        "velocity": [0.0, 0.0, 0.0],
+        "acceleration": [0.0, 0.0, 0.0],
+        "yaw": 0.0,
+    }
+
+
+class Controller(_ControllerNode):
+    """The standard cascaded controller (`control.StandardController`) for four motors.
+
+    Parameters: ``max_tilt`` (rad). Exports ``{integral, failed_motor}``: the position
+    integrators (an acceleration bias, m/s^2) and the motor it saw fail in the telemetry
+    (it does nothing else with the telemetry: it is the Proploss controller's business).
+    """
+
+    def setup(self) -> None:
+        self.ctl = control.StandardController(max_tilt=float(self.ctx.param("max_tilt", 0.5)))
+
+    def on_params(self, changed: dict[str, Any]) -> None:
+        if "max_tilt" in changed:
+            self.ctl.max_tilt = float(self.ctx.param("max_tilt", 0.5))
+
+    def compute(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray:
+        return self.ctl.update(est, sp)
+
+    def export_state(self) -> Any:
+        return self.ctl.export_state() | {"failed_motor": self.failed_motor}
+
+    def import_state(self, state: Any) -> None:
+        self.ctl.import_state(state)
+
+
+class ProplossController(_ControllerNode):
+    """Two-propeller flight after a motor loss (`control.ProplossController`).
+
+    Parameters: ``failed_motor`` (0..3, or -1: find it from the telemetry). Finds the
+    failed motor in ``telemetry`` (latched), computes a command on every estimate while in
+    standby (the SDK drops the publish), publishes the latest one at once on activation.
+    Imports the standard controller's state (position integrators, failed motor).
+    """
+
+    def setup(self) -> None:
+        self.ctl = control.ProplossController()
+        self._apply_failed_param()
+
+    def _apply_failed_param(self) -> None:
+        k = self.ctx.param("failed_motor", -1)
+        if isinstance(k, int) and not isinstance(k, bool) and 0 <= k < N_MOTORS:
+            self.ctl.set_failed(k)
+            self.failed_motor = k
+
+    def on_params(self, changed: dict[str, Any]) -> None:
+        if "failed_motor" in changed:
+            self._apply_failed_param()
+
+    def on_telemetry(self, data: dict[str, Any]) -> None:
+        k = self.ctl.observe_telemetry(data)
+        if k is not None:
+            self.failed_motor = k
+
+    def compute(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray | None:
+        return self.ctl.update(est, sp)
+
+    def on_active(self, active: bool) -> None:
+        if not active:
+            return
+        if self.last_command is None and self.estimate is not None and self.setpoint:
+            cmd = self.ctl.update(self.estimate, self.setpoint)
+            self.last_command = None if cmd is None else [float(w) for w in cmd]
+        if self.last_command is not None:
+            self.ctx.publish("motor_cmd", self._message(self.last_command))
+        else:
+            self.ctx.log("activated without a known failed motor: no command yet")
+
+    def export_state(self) -> Any:
+        return self.ctl.export_state()
+
+    def import_state(self, state: Any) -> None:
+        self.ctl.import_state(state)
+        if self.ctl.failed is not None:
+            self.failed_motor = self.ctl.failed

@@ -212,6 +212,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.agents.status:configure_events", p),
         lazy("rra_agent.agents.status:run_events"),
     ),
+    "demo": Command(
+        "the paper's evaluation: a quadcopter loses a motor, RRA swaps its controller",
+        lambda p: _configure("rra_agent.demo:configure", p),
+        lazy("rra_agent.demo:run"),
+    ),
     "param": Command(
         "print or set the parameters of a running node (NAME=VALUE ...)",
         lambda p: _configure("rra_agent.agents.status:configure_param", p),

@@ -207,18 +207,22 @@ class ScenarioCase:
     sample_period: float
     timeline: tuple[TimedStep, ...]
     expectations: tuple[x.Expectation, ...]
+    #: Further data topics to record (tools such as ``rra demo`` read them).
+    record_topics: frozenset[str] = frozenset()
+    #: Further arguments for ``rra up`` (e.g. ``--rerun save PATH``).
+    up_args: tuple[str, ...] = ()
 
     @property
     def id(self) -> str:
         return f"{self.scenario}::{self.case}" if self.case else self.scenario
 
     def data_topics(self) -> set[str]:
-        """Topics the expectations read (the runner subscribes to these only)."""
+        """Topics the expectations read, and `record_topics` (the runner records these only)."""
         return {
             e.quantity.topic
             for e in self.expectations
             if isinstance(e, x.ValueExpectation) and e.quantity.kind == "data"
-        }
+        } | set(self.record_topics)
 
     def param_nodes(self) -> set[str]:
         """Nodes whose parameters the expectations read (sampled during the run)."""

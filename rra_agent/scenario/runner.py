@@ -142,7 +142,7 @@ def up_command(case: ScenarioCase, package: Path, run_dir: Path, endpoint: str) 
         cmd += ["--select", ",".join(case.select)]
     if not case.adaptation:
         cmd.append("--no-adaptation")
-    return cmd
+    return cmd + list(case.up_args)
 
 
 def free_port() -> int:

@@ -80,9 +80,41 @@ class VehicleSimulator(Node):
         self._announce: str | None = None  # a new controller's command not yet stepped
         self._crash_reported = False
         self._next_telemetry = 0.0
+        self.viz: Any = None
 
     def on_start(self) -> None:
         self._subscribe_injections()
+        self._open_viz()
+
+    def on_stop(self) -> None:
+        if self.viz is not None:
+            self.viz.close()
+            self.viz = None
+
+    # ---- Rerun (only when the run records one: RRA_RERUN) ----------------------------------
+    def _open_viz(self) -> None:
+        from rra_agent.viz.rerun_log import Every, open_logger
+
+        self.viz = open_logger(self.ctx.name)
+        self._draw = Every(0.02)  # 3D at 50 Hz of simulated time; scalars every step
+        if self.viz is not None:
+            p = self.quad.p
+            rotors = [(float(x), float(y), 0.0) for x, y in p.rotor_positions]
+            self.viz.vehicle_geometry(rotors, thrust_scale=0.5 / p.weight)
+
+    def _log(self) -> None:
+        viz, q = self.viz, self.quad
+        t = float(q.time)
+        target = self.ctx.param("initial_position", [0.0, 0.0, 0.0])[2]
+        viz.altitude(float(q.position[2]), sim_time=t, target=float(target))
+        tel = q.telemetry()
+        for quantity in ("desired_speed", "measured_speed", "current"):
+            viz.motors(quantity, tel[quantity], sim_time=t)
+        if self._draw(t):
+            w, x, y, z = (float(v) for v in q.quaternion)  # MuJoCo: w first; Rerun: w last
+            viz.vehicle_pose([float(v) for v in q.position], (x, y, z, w), sim_time=t)
+            thrusts = (q.p.k_f * q.speed * q.speed).tolist()
+            viz.thrust(thrusts, sim_time=t, failed=[bool(b) for b in q.faults.broken])
 
     # ---- inputs ----------------------------------------------------------------------------
     def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
@@ -120,6 +152,8 @@ class VehicleSimulator(Node):
             self._event("armed", self._announce)
         if not self.armed or self._advance(now) > 0:
             self._publish()
+            if self.viz is not None and self.armed:
+                self._log()
 
     def _advance(self, now: float) -> int:
         """Run the physics steps due at wall time ``now``; return how many ran."""

@@ -1,0 +1,214 @@
+"""``rra demo``: the paper's evaluation, end to end, with a report.
+
+Runs ``scenarios/quadcopter/motor_failure.scenario.yaml`` (case ``adaptive``, or ``control``
+with ``--no-adaptation``) headless under ``rra up --rerun save demo.rrd``: the quadcopter
+hovers at 2 m, motor 2 breaks at t = 5 s, RRA swaps the controller, the run stops at
+t = 20 s. Then it prints what happened, measured from what was recorded on the bus:
+
+- detection: fault -> the Context Monitor's first ``WorkingMotors < 4``;
+- decision: that measurement -> the Adaptation Engine's selection with Proploss;
+- plan and execution: the Run-time Resolution Engine's own figures for that adaptation;
+- latency: fault -> the simulator's first physics step driven by a Proploss command;
+- altitude lost after the fault, and whether the vehicle stayed airborne.
+
+`recovery_report` is pure (a scenario `Recording` in, a `RecoveryReport` out) and is reused
+by ``tools/bench_recovery.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+
+from rra_agent.bus import messages as m
+from rra_agent.errors import RraError
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIO = ROOT / "scenarios" / "quadcopter" / "motor_failure.scenario.yaml"
+FAULT = "motor_failure"
+SIM = "vehicle_simulator"
+RECORD = frozenset({f"{SIM}/events", f"{SIM}/state"})
+
+
+class RecoveryReport(msgspec.Struct, kw_only=True):
+    """Times in seconds after the fault (None: did not happen)."""
+
+    fault_stamp: float | None = None
+    detected: float | None = None
+    decided: float | None = None
+    plan: float | None = None
+    #: From the start of the plan's execution until the new controller was switched to.
+    switch: float | None = None
+    #: The whole plan, including stopping the old controller after the switch.
+    execute: float | None = None
+    first_proploss_command: float | None = None
+    setpoint: float | None = None
+    altitude_lost: float | None = None
+    min_altitude: float | None = None
+    airborne: bool = False
+    crash: str = ""
+    strategy: str = ""
+
+
+def _data(rec, topic: str) -> list:
+    return [d for d in rec.data if d.topic == topic]
+
+
+def recovery_report(rec, *, setpoint: float | None = None) -> RecoveryReport:
+    """What happened around the fault, from a scenario recording."""
+    out = RecoveryReport()
+    sim_events = [d.value for d in _data(rec, f"{SIM}/events")]
+    fault = next((e for e in sim_events if e.get("kind") == "fault"), None)
+    applied = next((a for a in rec.injections if a.name == FAULT and a.ok), None)
+    t_f = fault["wall_time"] if fault else (applied.stamp if applied else None)
+    if t_f is None:
+        return out
+    out.fault_stamp = t_f
+    detect = next(
+        (x for x in rec.measurements
+         if x.name == "WorkingMotors" and x.value < 4 and x.stamp >= t_f),
+        None,
+    )  # fmt: skip
+    if detect is not None:
+        out.detected = detect.stamp - t_f
+    chosen = next(
+        (s for s in rec.selections
+         if isinstance(s, m.Selection) and "Proploss" in s.features and s.stamp >= t_f),
+        None,
+    )  # fmt: skip
+    if chosen is not None:
+        out.decided = chosen.stamp - (detect.stamp if detect else t_f)
+    adaptation = next(
+        (e for e in rec.events
+         if isinstance(e, m.AdaptationEvent) and e.kind == "adaptation" and e.stamp >= t_f
+         and any("proploss" in p for p in e.plan)),
+        None,
+    )  # fmt: skip
+    if adaptation is not None:
+        out.plan = adaptation.durations.get("plan")
+        out.switch = adaptation.durations.get("switch")
+        out.execute = adaptation.durations.get("execute")
+    switch = next(
+        (e for e in sim_events
+         if e.get("kind") == "controller" and "proploss" in str(e.get("detail", ""))
+         and e["wall_time"] >= t_f),
+        None,
+    )  # fmt: skip
+    if switch is not None:
+        out.first_proploss_command = switch["wall_time"] - t_f
+    states = [d for d in _data(rec, f"{SIM}/state") if isinstance(d.value.get("position"), list)]
+    before = [d.value["position"][2] for d in states if d.stamp < t_f]
+    after = [d.value["position"][2] for d in states if d.stamp >= t_f]
+    out.setpoint = setpoint if setpoint is not None else (before[-1] if before else None)
+    if after:
+        out.min_altitude = min(after)
+        if out.setpoint is not None:
+            out.altitude_lost = max(0.0, out.setpoint - out.min_altitude)
+    crash = next((e for e in sim_events if e.get("kind") == "crash"), None)
+    out.crash = str(crash.get("detail", "crashed")) if crash else ""
+    out.airborne = crash is None and bool(after) and min(after) > 0.2
+    return out
+
+
+def _ms(v: float | None) -> str:
+    return "-" if v is None else f"{v * 1e3:.1f} ms"
+
+
+def render_report(r: RecoveryReport) -> str:
+    lost = "-" if r.altitude_lost is None else f"{r.altitude_lost:.3f} m"
+    verdict = "STAYED AIRBORNE" if r.airborne else f"CRASHED{': ' + r.crash if r.crash else ''}"
+    rows = [
+        ("detection (fault -> WorkingMotors < 4)", _ms(r.detected)),
+        ("decision (-> Proploss selected)", _ms(r.decided)),
+        ("plan", _ms(r.plan)),
+        ("execution: switch (activate + rewire)", _ms(r.switch)),
+        ("execution: whole plan (+ stop old controller)", _ms(r.execute)),
+        ("fault -> first Proploss command applied", _ms(r.first_proploss_command)),
+        ("altitude lost", lost),
+        ("vehicle", verdict),
+    ]
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+# ---- the command --------------------------------------------------------------------------
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", default="demo.rrd", help="the Rerun recording (default demo.rrd)")
+    p.add_argument(
+        "--strategy",
+        choices=("standby", "start-then-stop", "stop-then-start"),
+        default="standby",
+        help="how the Proploss controller replaces the standard one (default standby)",
+    )
+    p.add_argument("--no-adaptation", action="store_true", help="the control case: no RRA")
+    p.add_argument("--run-dir", help="logs of the run (default: .rra/demo-<time>)")
+
+
+def prepare_case(strategy: str, adaptation: bool, out: Path):
+    """The scenario case to run: the package's replacement model with ``strategy`` for the
+    Proploss controller, the simulator's topics recorded, a Rerun recording saved."""
+    from rra_agent.models.loader import load_package
+    from rra_agent.scenario.model import load_scenario
+
+    sf = load_scenario(SCENARIO)
+    case = next(c for c in sf.cases if c.case == ("adaptive" if adaptation else "control"))
+    rep = load_package(case.package).runtime.replacement
+    rep = msgspec.structs.replace(
+        rep, components={**rep.components, "proploss_controller": strategy}
+    )
+    return dataclasses.replace(
+        case, replacement=rep, record_topics=RECORD, up_args=("--rerun", "save", str(out))
+    )
+
+
+def _progress(case, stop: threading.Event, started: float) -> None:
+    """A progress line: redrawn in place on a terminal, every 5 s otherwise."""
+    fault = next((s.step.at for s in case.timeline if s.name == FAULT), None)
+    tty = sys.stdout.isatty()
+    note = f"motor 2 breaks at t = {fault:g} s, " if fault is not None else ""
+    while not stop.wait(0.5 if tty else 5.0):
+        t = time.monotonic() - started
+        line = f"  running: {t:5.1f} s ({note}stops at t = {case.duration:g} s)"
+        print(f"\r{line}" if tty else line, end="" if tty else "\n", flush=True)
+    if tty:
+        print()
+
+
+def run(args: argparse.Namespace) -> int:
+    from rra_agent.scenario.runner import render_rows, run_case
+
+    out = Path(args.out).resolve()
+    run_dir = Path(args.run_dir or Path(".rra") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
+    run_dir = run_dir.resolve()
+    case = prepare_case(args.strategy, not args.no_adaptation, out)
+    how = "no adaptation (control case)" if args.no_adaptation else f"{args.strategy} strategy"
+    print(f"rra demo: quadcopter hovering at 2 m, motor 2 breaks at t = 5 s; {how}", flush=True)
+    stop = threading.Event()
+    ticker = threading.Thread(target=_progress, args=(case, stop, time.monotonic()), daemon=True)
+    ticker.start()
+    try:
+        result = run_case(case, run_dir)
+    finally:
+        stop.set()
+        ticker.join()
+    if result.error:
+        raise RraError(f"the demo run failed: {result.error}")
+    report = recovery_report(result.recording, setpoint=2.0)
+    report.strategy = args.strategy if not args.no_adaptation else "none"
+    print("\nWhat happened after the fault:")
+    print(render_report(report))
+    print("\nThe scenario's expectations:")
+    print(render_rows([result]))
+    (run_dir / "report.json").write_bytes(msgspec.json.encode(report))
+    if out.exists():
+        print(f"\nRecording: {out} (verified). Open it with:\n  rerun {out}")
+    else:
+        print(f"\nNo recording was written (see {run_dir / 'up.log'}).")
+    print(f"Logs and events: {run_dir}")
+    return 0 if result.passed and out.exists() else 1

@@ -52,8 +52,12 @@ class FakeActuator:
                     call = ("params", name, dict(p))
                 case m.Rewire(port=port, keys=keys):
                     call = ("rewire", name, port, tuple(keys))
-                case m.Activate() | m.Deactivate():
-                    call = ("active", name, isinstance(c.request, m.Activate))
+                case m.Activate(state=st):
+                    if st is not None:  # the state is taken over first, in the same request
+                        self.calls.append(("import", name, st))
+                    call = ("active", name, True)
+                case m.Deactivate():
+                    call = ("active", name, False)
                 case m.ExportState():
                     call = ("export", name)
                 case m.ImportState(state=st):

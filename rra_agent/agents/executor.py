@@ -17,12 +17,13 @@ about one round trip (or one process start), not one per node:
    already running inactive (pre-started at deployment; if it is not, make before break);
    restarts (`SetImplementation`) stop and start again (a name is a node's identity on the
    bus, so old and new cannot overlap);
-3. **state transfer** for make-before-break and standby swaps: export from the old nodes,
-   import into the new ones;
-4. **switch**, one batch: activate the new nodes, deactivate the old ones (unless they are
-   stopped next and publish on other keys than their replacements: then the rewire of their
-   subscribers in this batch already cuts them off), set parameters, rewire subscribers (of
-   swapped peers, of standby nodes' own inputs, and the plan's `Rewire` steps);
+3. **state transfer** for make-before-break and standby swaps: export from the old nodes
+   (one batch); the new nodes take the state over with their activation;
+4. **switch**, one batch: activate the new nodes (with the exported state), deactivate the
+   old ones (unless they are stopped next and publish on other keys than their
+   replacements: then the rewire of their subscribers in this batch already cuts them
+   off), set parameters, rewire subscribers (of swapped peers, of standby nodes' own
+   inputs, and the plan's `Rewire` steps);
 5. **stop** the components that go, with the swapped-out nodes (an inactive node publishes
    nothing, so stopping it last costs the switch nothing), unless a swapped-out node's own
    strategy is ``standby``: then it stays, inactive, for the way back.
@@ -258,8 +259,7 @@ class Executor:
         restarts = [s for s in steps if isinstance(s, r.SetImplementation)]
         self._prepare(tx, swaps, restarts)
         warm = [w for w in swaps if w.strategy != "stop-then-start"]
-        self._transfer_state(tx, warm)
-        self._switch(tx, warm, steps)
+        self._switch(tx, warm, steps, self._export(tx, warm))
         retire = [w for w in warm if self.replacement.strategy_for(w.old.name) != "standby"]
         stops = [self.running[s.component] for s in steps if isinstance(s, r.StopComponent)]
         stops += [self.running[w.old.name] for w in retire]
@@ -326,24 +326,14 @@ class Executor:
             for t in self.replacement.state_transfer
         )
 
-    def _transfer_state(self, tx: Transaction, warm: list[_Swap]) -> None:
-        states = self._export(tx, warm)
-        batch = [
-            Ctl(w.new, m.ImportState(state=st))
-            for w, st in zip(warm, states, strict=True)
-            if st is not None
-        ]
-        if batch:
-            tx.run("import_state", _names([c.spec for c in batch]), lambda: self._ok(batch), None)
-
-    def _switch(self, tx: Transaction, warm: list[_Swap], steps) -> None:
+    def _switch(self, tx: Transaction, warm: list[_Swap], steps, states: list[Any]) -> None:
         batch: list[Ctl] = []
-        for w in warm:
+        for w, state in zip(warm, states, strict=True):
             new = self.running[w.new.name]
             batch += self._rewires(
                 new, {p: [self.keys.data(t) for t in ts] for p, ts in w.step.inputs.items()}
             )
-            batch.append(self._activation(self.running[w.new.name], True))
+            batch.append(self._activation(self.running[w.new.name], True, state))
             if self._must_deactivate(w):
                 batch.append(self._activation(self.running[w.old.name], False))
         for s in steps:
@@ -374,8 +364,8 @@ class Executor:
         new_out = {k for p in w.new.ports.values() if p.direction == "publish" for k in p.keys}
         return bool(old_out & new_out)
 
-    def _activation(self, spec: NodeSpec, active: bool) -> Ctl:
-        req = m.Activate() if active else m.Deactivate()
+    def _activation(self, spec: NodeSpec, active: bool, state: Any = None) -> Ctl:
+        req = m.Activate(state=state) if active else m.Deactivate()
         inv = m.Deactivate() if active else m.Activate()
         return Ctl(spec, req, msgspec.structs.replace(spec, active=active), inv)
 

@@ -19,6 +19,7 @@ agent). Status (selection, CV values, nodes) is served on ``rra/<system>/engine/
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -46,6 +47,9 @@ from rra_agent.models.system import Component, SystemModel
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
+#: Benchmarks only (``tools/bench_recovery.py``): wait this long before executing a plan, to
+#: emulate a slower adaptation pipeline such as the paper's 0.5 s.
+EMULATED_DELAY = float(os.environ.get("RRA_EMULATED_SWAP_DELAY", "0") or 0)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
@@ -156,6 +160,8 @@ class ResolutionEngine:
             )
             return None
         t_plan = time.perf_counter()
+        if EMULATED_DELAY > 0 and plan.steps:
+            time.sleep(EMULATED_DELAY)  # benchmarks only: a slower pipeline, like the paper's
         outcome = self.executor.execute(plan)
         t_end = time.perf_counter()
         reads = [f.reads.values() for f in msg.cause]

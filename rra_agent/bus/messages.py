@@ -130,7 +130,10 @@ class Rewire(Msg, tag="rewire"):
 
 
 class Activate(Msg, tag="activate"):
-    pass
+    """Start publishing. With ``state``: first take over this exported state (of the node
+    being replaced), so a switch with state transfer is one request, not two."""
+
+    state: Any = None
 
 
 class Deactivate(Msg, tag="deactivate"):

@@ -303,7 +303,9 @@ class NodeCore:
             case m.Rewire(port=port, keys=keys):
                 self._rewire(port, keys)
                 return m.Ok()
-            case m.Activate():
+            case m.Activate(state=state):
+                if state is not None:
+                    self.node.import_state(state)
                 self._set_active(True)
                 return m.Ok()
             case m.Deactivate():

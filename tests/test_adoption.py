@@ -111,3 +111,29 @@ def test_spec_from_describe_round_trips(world):
                   for n, p in want.ports.items()],
     }  # fmt: skip
     assert spec_from_info("relay_system", info, want.implementation) == want
+
+
+def test_a_running_node_that_does_not_answer_is_restarted_not_started_twice(world):
+    target, expected = world
+    tgt = target("Direct")
+    want = expected(tgt)
+    seen = {n: s for n, s in want.items() if n != "sink"}
+    plan, running, _ = takeover_plan(Observed(seen, silent={"sink": "local"}), want, tgt, set())
+    assert kinds(plan) == [("SetImplementation", "sink")]
+    assert "sink" in running
+
+
+def test_only_parameters_the_runtime_model_manages_are_set_back(world):
+    from rra_agent.agents.adoption import managed_parameters
+
+    target, expected = world
+    tgt = target("Direct", gain=3.0)
+    want = expected(tgt)
+    managed = managed_parameters(deploy(DATA).package.runtime)
+    assert managed == {("sink", "offset")}  # Tuning: from_attribute Gain
+    seen = dict(want)
+    seen["source"] = msgspec.structs.replace(want["source"], params={"rate_hz": 20.0, "value": 7.0})
+    seen["sink"] = msgspec.structs.replace(want["sink"], params={"offset": 9.0})
+    plan, _, _ = takeover_plan(Observed(seen), want, tgt, set(), managed)
+    assert kinds(plan) == [("SetParameters", "sink")]  # the source's hand-set value stays
+    assert plan.steps[0].values == {"offset": 3.0}

@@ -18,6 +18,7 @@ from typing import Any
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.core import resolution as r
+from rra_agent.models.resolution import ResolutionModel
 from rra_agent.models.system import SystemModel
 
 
@@ -26,6 +27,8 @@ class Observed:
     """Nodes of this system running now, as specs, by name."""
 
     nodes: dict[str, m.NodeSpec] = field(default_factory=dict)
+    #: Running by their host's account, but not answering: name -> host.
+    silent: dict[str, str] = field(default_factory=dict)
 
 
 def spec_from_info(system: str, info: dict[str, Any], implementation: Any) -> m.NodeSpec:
@@ -50,10 +53,23 @@ def spec_from_info(system: str, info: dict[str, Any], implementation: Any) -> m.
     )
 
 
+def managed_parameters(model: ResolutionModel) -> set[tuple[str, str]]:
+    """(component, parameter) pairs some transformation of ``model`` sets."""
+    return {
+        (t.set_parameter.component, t.set_parameter.parameter)
+        for ts in model.features.values()
+        for t in ts
+        if t.set_parameter is not None
+    }
+
+
 def observe(
-    client: BusClient, hosts: list[str], configured: SystemModel, timeout: float = 2.0
+    client: BusClient, hosts: list[str], configured: SystemModel, timeout: float = 5.0
 ) -> Observed:
-    """Every component of ``configured`` that a host agent reports RUNNING, described."""
+    """Every component of ``configured`` that a host agent reports RUNNING, described.
+
+    A node that its host reports RUNNING but that does not answer ``Describe`` (twice) is
+    recorded with ``silent``: it runs, in a state we cannot read, so it is restarted."""
     components = {c.name: c for c in configured.components}
     out = Observed()
     for host in hosts:
@@ -67,14 +83,24 @@ def observe(
             name = node["node"]
             if name not in components or node["state"] != "RUNNING":
                 continue
-            try:
-                info = client.node(name, m.Describe(), timeout)
-            except NoReply:
+            info = _describe(client, name, timeout)
+            if info is None:
+                out.silent[name] = host
                 continue
-            if isinstance(info, m.Ok):
-                impl = components[name].implementation
-                out.nodes[name] = spec_from_info(configured.system, info.result, impl)
+            impl = components[name].implementation
+            out.nodes[name] = spec_from_info(configured.system, info, impl)
     return out
+
+
+def _describe(client: BusClient, name: str, timeout: float) -> dict[str, Any] | None:
+    for _ in range(2):
+        try:
+            reply = client.node(name, m.Describe(), timeout)
+        except NoReply:
+            continue
+        if isinstance(reply, m.Ok):
+            return reply.result
+    return None
 
 
 def takeover_plan(
@@ -82,19 +108,34 @@ def takeover_plan(
     expected: dict[str, m.NodeSpec],
     target: SystemModel,
     keep_standby: set[str],
+    managed: set[tuple[str, str]] | None = None,
 ) -> tuple[r.Plan, dict[str, m.NodeSpec], dict[str, m.NodeSpec]]:
     """The plan from what runs to ``target``, and the nodes to hand the executor as already
     running and as standby. ``expected``: the spec each target component should run with;
-    ``keep_standby``: components that may stay running inactive as standby replacements."""
+    ``keep_standby``: components that may stay running inactive as standby replacements;
+    ``managed``: the (component, parameter) pairs the Run-time Resolution Model sets — only
+    those are set back; any other parameter keeps the value it has (None: all are managed)."""
     subs = r.subscriptions(target)
     by_name = {c.name: c for c in target.components}
     running: dict[str, m.NodeSpec] = {}
     standby: dict[str, m.NodeSpec] = {}
     steps: list[r.PlanStep] = []
+    for name, host in observed.silent.items():
+        # It runs but we cannot read its state: restart it (or stop it if it should not run).
+        want = expected.get(name)
+        running[name] = want or m.NodeSpec(system=target.system, name=name, host=host,
+                                           implementation="")  # fmt: skip
+        if want is not None:
+            c = by_name[name]
+            steps.append(r.SetImplementation(component=name, implementation=c.implementation,
+                                             previous=c.implementation, definition=c,
+                                             **_wiring(c, subs)))  # fmt: skip
+        else:
+            steps.append(r.StopComponent(component=name))
     for name, seen in observed.nodes.items():
         if name in expected:
             running[name] = seen
-            steps += _reconcile(seen, expected[name], by_name[name], subs)
+            steps += _reconcile(seen, expected[name], by_name[name], subs, managed)
         elif name in keep_standby and not seen.active:
             standby[name] = seen
         else:
@@ -103,7 +144,7 @@ def takeover_plan(
     starts = [
         r.StartComponent(component=n, definition=by_name[n], **_wiring(by_name[n], subs))
         for n in expected
-        if n not in observed.nodes
+        if n not in observed.nodes and n not in observed.silent
     ]
     return r.Plan(steps=tuple(_canonical(starts + steps))), running, standby
 
@@ -117,7 +158,7 @@ def _wiring(c, subs) -> dict[str, dict]:
     }
 
 
-def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs) -> list[r.PlanStep]:
+def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs, managed) -> list[r.PlanStep]:
     same_shape = (
         seen.implementation == want.implementation
         and seen.host == want.host
@@ -137,7 +178,11 @@ def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs) -> list[r.PlanStep]:
             )
         ]
     steps: list[r.PlanStep] = []
-    values = {k: v for k, v in want.params.items() if seen.params.get(k) != v}
+    values = {
+        k: v
+        for k, v in want.params.items()
+        if seen.params.get(k) != v and (managed is None or (c.name, k) in managed)
+    }
     if values:
         steps.append(r.SetParameters(component=c.name, values=values))
     for port, spec in want.ports.items():

@@ -30,7 +30,7 @@ import msgspec
 import zenoh
 
 from rra_agent.agents.actuator import ZenohActuator
-from rra_agent.agents.adoption import observe, takeover_plan
+from rra_agent.agents.adoption import managed_parameters, observe, takeover_plan
 from rra_agent.agents.deployment import Deployment
 from rra_agent.agents.events import EventSink
 from rra_agent.agents.executor import Executor, Outcome, spec_for
@@ -257,7 +257,8 @@ class ResolutionEngine:
         observed = observe(self.actuator.client, hosts, self.dep.configured)
         expected = {c.name: self._spec(target, c) for c in target.components}
         candidates = {s.name for s in self.standby_specs(target)}
-        plan, running, standby = takeover_plan(observed, expected, target, candidates)
+        managed = managed_parameters(self.dep.package.runtime)
+        plan, running, standby = takeover_plan(observed, expected, target, candidates, managed)
         self.executor.running, self.executor.standby = running, standby
         outcome = self.executor.execute(plan)
         if outcome.ok:

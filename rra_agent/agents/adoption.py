@@ -129,7 +129,7 @@ def takeover_plan(
             c = by_name[name]
             steps.append(r.SetImplementation(component=name, implementation=c.implementation,
                                              previous=c.implementation, definition=c,
-                                             **_wiring(c, subs)))  # fmt: skip
+                                             **r.wiring(c, subs)))  # fmt: skip
         else:
             steps.append(r.StopComponent(component=name))
     for name, seen in observed.nodes.items():
@@ -142,20 +142,11 @@ def takeover_plan(
             running[name] = seen
             steps.append(r.StopComponent(component=name))
     starts = [
-        r.StartComponent(component=n, definition=by_name[n], **_wiring(by_name[n], subs))
+        r.StartComponent(component=n, definition=by_name[n], **r.wiring(by_name[n], subs))
         for n in expected
         if n not in observed.nodes and n not in observed.silent
     ]
     return r.Plan(steps=tuple(_canonical(starts + steps))), running, standby
-
-
-def _wiring(c, subs) -> dict[str, dict]:
-    return {
-        "inputs": {p.name: subs[(c.name, p.name)] for p in c.ports if p.direction == "subscribe"},
-        "outputs": {
-            p.name: p.topic or f"{c.name}/{p.name}" for p in c.ports if p.direction == "publish"
-        },
-    }
 
 
 def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs, managed) -> list[r.PlanStep]:
@@ -174,7 +165,7 @@ def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs, managed) -> list[r.P
                 implementation=c.implementation,
                 previous=seen.implementation,
                 definition=c,
-                **_wiring(c, subs),
+                **r.wiring(c, subs),
             )
         ]
     steps: list[r.PlanStep] = []

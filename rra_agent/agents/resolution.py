@@ -290,12 +290,8 @@ class ResolutionEngine:
 
     def _spec(self, model: SystemModel, c: Component) -> m.NodeSpec:
         """The spec that runs ``c`` wired as ``model`` connects it."""
-        subs = r.subscriptions(model)
-        inputs = {p.name: subs.get((c.name, p.name), ()) for p in c.ports}
-        outputs = {
-            p.name: r.topic_of(model, c.name, p.name) for p in c.ports if p.direction == "publish"
-        }
-        return spec_for(self.keys, c, inputs, outputs, default_host=self.host)
+        w = r.wiring(c, r.subscriptions(model))
+        return spec_for(self.keys, c, w["inputs"], w["outputs"], default_host=self.host)
 
     # ---- the applied selection survives a restart of this engine -------------------------
     @property

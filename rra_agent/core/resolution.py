@@ -83,6 +83,7 @@ __all__ = [
     "resolve_runtime",
     "subscriptions",
     "topic_of",
+    "wiring",
 ]
 
 
@@ -644,12 +645,12 @@ def diff(current: SystemModel, target: SystemModel) -> Plan:
     running = [n for n in both if n not in restarted]
 
     steps: list[PlanStep] = [
-        StartComponent(component=n, definition=tgt[n], **_wiring(tgt[n], tgt_subs))
+        StartComponent(component=n, definition=tgt[n], **wiring(tgt[n], tgt_subs))
         for n in new
         if n not in swapped_in
     ]
     steps += [
-        SwapComponent(component=o, replacement=n, definition=tgt[n], **_wiring(tgt[n], tgt_subs))
+        SwapComponent(component=o, replacement=n, definition=tgt[n], **wiring(tgt[n], tgt_subs))
         for o, n in swaps
     ]
     steps += [
@@ -658,7 +659,7 @@ def diff(current: SystemModel, target: SystemModel) -> Plan:
             implementation=tgt[n].implementation,
             previous=cur[n].implementation,
             definition=tgt[n],
-            **_wiring(tgt[n], tgt_subs),
+            **wiring(tgt[n], tgt_subs),
         )
         for n in restarted
     ]
@@ -699,7 +700,9 @@ def _changed_parameters(cur: Component, tgt: Component) -> dict[str, ParamValue]
     }
 
 
-def _wiring(c: Component, subs: Mapping[tuple[str, str], tuple[str, ...]]) -> dict[str, dict]:
+def wiring(c: Component, subs: Mapping[tuple[str, str], tuple[str, ...]]) -> dict[str, dict]:
+    """A component's ``inputs`` (subscriber port -> topics) and ``outputs`` (publisher port ->
+    topic), as plan steps carry them; ``subs`` from `subscriptions`."""
     return {
         "inputs": {p.name: subs[(c.name, p.name)] for p in c.ports if p.direction == "subscribe"},
         "outputs": {

@@ -71,35 +71,50 @@ def recovery_report(rec, *, setpoint: float | None = None) -> RecoveryReport:
         return out
     out.fault_stamp = t_f
     detect = next(
-        (x for x in rec.measurements
-         if x.name == "WorkingMotors" and x.value < 4 and x.stamp >= t_f),
+        (
+            x
+            for x in rec.measurements
+            if x.name == "WorkingMotors" and x.value < 4 and x.stamp >= t_f
+        ),
         None,
-    )  # fmt: skip
+    )
     if detect is not None:
         out.detected = detect.stamp - t_f
     chosen = next(
-        (s for s in rec.selections
-         if isinstance(s, m.Selection) and "Proploss" in s.features and s.stamp >= t_f),
+        (
+            s
+            for s in rec.selections
+            if isinstance(s, m.Selection) and "Proploss" in s.features and s.stamp >= t_f
+        ),
         None,
-    )  # fmt: skip
+    )
     if chosen is not None:
         out.decided = chosen.stamp - (detect.stamp if detect else t_f)
     adaptation = next(
-        (e for e in rec.events
-         if isinstance(e, m.AdaptationEvent) and e.kind == "adaptation" and e.stamp >= t_f
-         and any("proploss" in p for p in e.plan)),
+        (
+            e
+            for e in rec.events
+            if isinstance(e, m.AdaptationEvent)
+            and e.kind == "adaptation"
+            and e.stamp >= t_f
+            and any("proploss" in p for p in e.plan)
+        ),
         None,
-    )  # fmt: skip
+    )
     if adaptation is not None:
         out.plan = adaptation.durations.get("plan")
         out.switch = adaptation.durations.get("switch")
         out.execute = adaptation.durations.get("execute")
     switch = next(
-        (e for e in sim_events
-         if e.get("kind") == "controller" and "proploss" in str(e.get("detail", ""))
-         and e["wall_time"] >= t_f),
+        (
+            e
+            for e in sim_events
+            if e.get("kind") == "controller"
+            and "proploss" in str(e.get("detail", ""))
+            and e["wall_time"] >= t_f
+        ),
         None,
-    )  # fmt: skip
+    )
     if switch is not None:
         out.first_proploss_command = switch["wall_time"] - t_f
     states = [d for d in _data(rec, f"{SIM}/state") if isinstance(d.value.get("position"), list)]

@@ -123,13 +123,20 @@ def takeover_plan(
     for name, host in observed.silent.items():
         # It runs but we cannot read its state: restart it (or stop it if it should not run).
         want = expected.get(name)
-        running[name] = want or m.NodeSpec(system=target.system, name=name, host=host,
-                                           implementation="")  # fmt: skip
+        running[name] = want or m.NodeSpec(
+            system=target.system, name=name, host=host, implementation=""
+        )
         if want is not None:
             c = by_name[name]
-            steps.append(r.SetImplementation(component=name, implementation=c.implementation,
-                                             previous=c.implementation, definition=c,
-                                             **r.wiring(c, subs)))  # fmt: skip
+            steps.append(
+                r.SetImplementation(
+                    component=name,
+                    implementation=c.implementation,
+                    previous=c.implementation,
+                    definition=c,
+                    **r.wiring(c, subs),
+                )
+            )
         else:
             steps.append(r.StopComponent(component=name))
     for name, seen in observed.nodes.items():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -19,6 +20,36 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+MINI = Path(__file__).parent / "data" / "mini"
+
+
+def copy_mini(tmp_path: Path) -> Path:
+    """A private copy of the small complete package tests/data/mini, to corrupt."""
+    root = tmp_path / "mini"
+    shutil.copytree(MINI, root, ignore=shutil.ignore_patterns("__pycache__"))
+    return root
+
+
+def plant(root: Path, file: str, old: str, new: str) -> str:
+    """Replace the single occurrence of ``old`` in ``file`` by ``new``; the new text."""
+    path = root / file
+    text = path.read_text()
+    assert text.count(old) == 1, f"{old!r} occurs {text.count(old)} times in {file}"
+    text = text.replace(old, new)
+    path.write_text(text)
+    return text
+
+
+def position(text: str, token: str, nth: int = 1) -> tuple[int, int]:
+    """1-based (line, col) of the ``nth`` occurrence of ``token`` in ``text``."""
+    idx = -1
+    for _ in range(nth):
+        idx = text.index(token, idx + 1)
+    line = text.count("\n", 0, idx) + 1
+    col = idx - (text.rfind("\n", 0, idx) + 1) + 1
+    return line, col
 
 
 def pid_alive(pid: int) -> bool:

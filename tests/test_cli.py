@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import copy_mini, plant, position
 
 from rra_agent import cli
 from rra_agent.cli import main
@@ -29,29 +29,6 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 # ---- helpers -----------------------------------------------------------------------------
-def copy_mini(tmp_path: Path) -> Path:
-    root = tmp_path / "mini"
-    shutil.copytree(MINI, root, ignore=shutil.ignore_patterns("__pycache__"))
-    return root
-
-
-def plant(root: Path, file: str, old: str, new: str) -> str:
-    path = root / file
-    text = path.read_text()
-    assert text.count(old) == 1, f"{old!r} occurs {text.count(old)} times in {file}"
-    text = text.replace(old, new)
-    path.write_text(text)
-    return text
-
-
-def position(text: str, token: str, nth: int = 1) -> tuple[int, int]:
-    """1-based (line, col) of the ``nth`` occurrence of ``token`` in ``text``."""
-    idx = -1
-    for _ in range(nth):
-        idx = text.index(token, idx + 1)
-    return text.count("\n", 0, idx) + 1, idx - (text.rfind("\n", 0, idx) + 1) + 1
-
-
 def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
     rc = main(argv)
     out, err = capsys.readouterr()

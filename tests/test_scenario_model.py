@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import position
 
 from rra_agent.bus import messages as m
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
@@ -191,12 +192,7 @@ def write(tmp_path: Path, text: str, name: str = "s.scenario.yaml") -> Path:
 
 
 def located(path: Path, token: str, nth: int = 1) -> Location:
-    text = path.read_text()
-    idx = -1
-    for _ in range(nth):
-        idx = text.index(token, idx + 1)
-    line = text.count("\n", 0, idx) + 1
-    return Location(str(path), line, idx - (text.rfind("\n", 0, idx) + 1) + 1)
+    return Location(str(path), *position(path.read_text(), token, nth))
 
 
 def errors_of(path: Path) -> list[ModelError]:

@@ -8,13 +8,13 @@ not available the feature model comes from ``tests/data/mini_features.json`` (it
 from __future__ import annotations
 
 import importlib.util
-import shutil
 import sys
 import types
 from pathlib import Path
 
 import msgspec
 import pytest
+from conftest import copy_mini, plant, position
 
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
 from rra_agent.models import loader
@@ -34,32 +34,6 @@ def features_loader(monkeypatch: pytest.MonkeyPatch) -> None:
         return
     fm = msgspec.json.decode((DATA / "mini_features.json").read_bytes(), type=FeatureModel)
     monkeypatch.setattr(loader, "_load_features", lambda file: fm)
-
-
-def copy_mini(tmp_path: Path) -> Path:
-    root = tmp_path / "mini"
-    shutil.copytree(MINI, root, ignore=shutil.ignore_patterns("__pycache__"))
-    return root
-
-
-def plant(root: Path, file: str, old: str, new: str) -> str:
-    """Replace the single occurrence of ``old`` in ``file`` by ``new``; the new text."""
-    path = root / file
-    text = path.read_text()
-    assert text.count(old) == 1, f"{old!r} occurs {text.count(old)} times in {file}"
-    text = text.replace(old, new)
-    path.write_text(text)
-    return text
-
-
-def position(text: str, token: str, nth: int = 1) -> tuple[int, int]:
-    """1-based (line, col) of the ``nth`` occurrence of ``token`` in ``text``."""
-    idx = -1
-    for _ in range(nth):
-        idx = text.index(token, idx + 1)
-    line = text.count("\n", 0, idx) + 1
-    col = idx - (text.rfind("\n", 0, idx) + 1) + 1
-    return line, col
 
 
 def errors_of(root: Path) -> list[ModelError]:

@@ -888,10 +888,6 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def _ts(t: float) -> str:
-    return "start" if t == -math.inf else f"{t:.2f} s"
-
-
 def _window(idx: Index, when: When) -> tuple[float, float, str] | str:
     """(a, b, note) of the window of ``when``, or why it cannot be placed."""
     if when.mode == "end":

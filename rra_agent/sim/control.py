@@ -326,11 +326,6 @@ class StandardController:
         self._k_rate, self._ki_rate = np.array(g.k_rate), np.array(g.ki_rate)
         self._max_rate, self._inertia = np.array(g.max_rate), p.inertia
 
-    def reset(self) -> None:
-        self.integral[:] = 0.0
-        self.rate_integral[:] = 0.0
-        self._last_t = None
-
     def update(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray:
         """Rotor speed commands (rad/s) for one estimate and the latest setpoint."""
         p, g = self.p, self.g

@@ -567,12 +567,6 @@ class Logger:
             )
 
     @_safe
-    def reset_trajectory(self) -> None:
-        """Forget the path flown so far (e.g. when the simulation restarts)."""
-        self._trajectory.clear()
-        self._trajectory_due = Every(self.trajectory_period)
-
-    @_safe
     def thrust(
         self,
         thrusts: Sequence[float],

@@ -98,12 +98,12 @@ class ResolutionEngine:
         them wired as the configured model connects them to what runs."""
         running = {c.name for c in target.components}
         rep = self.dep.package.runtime.replacement
-        out = [
-            self._spec(self.dep.configured, c)
+        standby = [
+            c
             for c in self.dep.configured.components
             if c.name not in running and rep.strategy_for(c.name) == "standby"
         ]
-        return out
+        return self._specs(self.dep.configured, standby)
 
     # ---- bus callbacks (Zenoh thread) ----------------------------------------------------
     def _on_selection(self, sample: zenoh.Sample) -> None:
@@ -255,7 +255,7 @@ class ResolutionEngine:
         target = self.target(self.selection, self.cv)
         hosts = sorted({c.host or self.host for c in self.dep.configured.components})
         observed = observe(self.actuator.client, hosts, self.dep.configured)
-        expected = {c.name: self._spec(target, c) for c in target.components}
+        expected = {s.name: s for s in self._specs(target, target.components)}
         candidates = {s.name for s in self.standby_specs(target)}
         managed = managed_parameters(self.dep.package.runtime)
         plan, running, standby = takeover_plan(observed, expected, target, candidates, managed)
@@ -288,10 +288,13 @@ class ResolutionEngine:
         self._publish_status()
         return outcome
 
-    def _spec(self, model: SystemModel, c: Component) -> m.NodeSpec:
-        """The spec that runs ``c`` wired as ``model`` connects it."""
-        w = r.wiring(c, r.subscriptions(model))
-        return spec_for(self.keys, c, w["inputs"], w["outputs"], default_host=self.host)
+    def _specs(self, model: SystemModel, components: list[Component]) -> list[m.NodeSpec]:
+        """The specs that run ``components`` wired as ``model`` connects them."""
+        subs = r.subscriptions(model)
+        return [
+            spec_for(self.keys, c, **r.wiring(c, subs), default_host=self.host)
+            for c in components
+        ]
 
     # ---- the applied selection survives a restart of this engine -------------------------
     @property

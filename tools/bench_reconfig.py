@@ -21,12 +21,12 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+import msgspec
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -36,18 +36,12 @@ from _benchutil import median, p99, print_table
 
 from rra_agent.agents.actuator import ZenohActuator
 from rra_agent.agents.deployment import deploy
-from rra_agent.agents.executor import Executor
+from rra_agent.agents.executor import Executor, spec_for
 from rra_agent.bus.client import wait_until
-from rra_agent.bus.config import BusConfig
+from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.runtime import open_session
 from rra_agent.core import resolution as r
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def write_package(root: Path, n: int, standby: bool) -> None:
@@ -149,12 +143,12 @@ def run_case(n: int, standby: bool, repeat: int) -> tuple[list[float], list[floa
                 return r.resolve_runtime(dep.configured, pkg.runtime, pkg.features,
                                          {"Bench", "Mode", mode}, {})  # fmt: skip
 
-            current = msgspec_empty(target("A"))
+            current = msgspec.structs.replace(target("A"), components=[], connections=[])
             out = ex.execute(r.diff(current, target("A")))
             assert out.ok, out.error
             current = target("A")
             if standby:
-                pre = [spec for spec in standby_specs(dep, keys, ex, "b", n)]
+                pre = standby_specs(dep, keys, "b")
                 assert ex.prestart_standby(pre).ok
             times, switch = [], []
             mode = "A"
@@ -180,23 +174,14 @@ def run_case(n: int, standby: bool, repeat: int) -> tuple[list[float], list[floa
                 agent.wait()
 
 
-def msgspec_empty(model):
-    import msgspec
-
-    return msgspec.structs.replace(model, components=[], connections=[])
-
-
-def standby_specs(dep, keys, ex: Executor, variant: str, n: int):
-    from rra_agent.agents.executor import spec_for
-
+def standby_specs(dep, keys, variant: str) -> list:
+    """The alternatives ``w<i><variant>``, wired as the configured model connects them."""
     subs = r.subscriptions(dep.configured)
-    out = []
-    for c in dep.configured.components:
-        if c.name.startswith("w") and c.name.endswith(variant):
-            inputs = {p.name: subs.get((c.name, p.name), ()) for p in c.ports}
-            outputs = {p.name: f"{c.name}/{p.name}" for p in c.ports if p.direction == "publish"}
-            out.append(spec_for(keys, c, inputs, outputs, default_host="local"))
-    return out
+    return [
+        spec_for(keys, c, **r.wiring(c, subs), default_host="local")
+        for c in dep.configured.components
+        if c.name.startswith("w") and c.name.endswith(variant)
+    ]
 
 
 def main() -> int:

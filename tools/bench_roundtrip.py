@@ -47,7 +47,6 @@ import itertools
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -67,7 +66,7 @@ from _benchutil import Stats, print_table  # noqa: E402
 
 from rra_agent.bus import messages as m  # noqa: E402
 from rra_agent.bus.config import ENV_VAR as BUS_ENV  # noqa: E402
-from rra_agent.bus.config import BusConfig  # noqa: E402
+from rra_agent.bus.config import BusConfig, free_port  # noqa: E402
 from rra_agent.bus.keys import Keys  # noqa: E402
 from rra_agent.node import SPEC_ENV  # noqa: E402
 
@@ -155,12 +154,6 @@ def pin(pid: int, cpus: set[int]) -> None:
     for tid in os.listdir(f"/proc/{pid}/task"):
         with contextlib.suppress(ProcessLookupError, FileNotFoundError):  # a thread that ended
             os.sched_setaffinity(int(tid), cpus)
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass

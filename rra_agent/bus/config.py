@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 from pathlib import Path
 from typing import Literal
 
@@ -31,6 +32,13 @@ from rra_agent.models.base import Model
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 ENV_VAR = "RRA_BUS_CONFIG"
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` right now (for a hub endpoint of a test or a tool)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
 
 
 class BusConfig(Model, frozen=True):

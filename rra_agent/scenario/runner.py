@@ -41,7 +41,7 @@ from rra_agent.agents.events import read_events
 from rra_agent.agents.localhost import die_with_parent
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
-from rra_agent.bus.config import BusConfig
+from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.node import decode_data, encode_data
 from rra_agent.bus.runtime import NoPeer
 from rra_agent.scenario import expectations as x
@@ -143,12 +143,6 @@ def up_command(case: ScenarioCase, package: Path, run_dir: Path, endpoint: str) 
     if not case.adaptation:
         cmd.append("--no-adaptation")
     return cmd + list(case.up_args)
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ---- recording -------------------------------------------------------------------------------

@@ -2,9 +2,10 @@
 
 Starting and stopping go through the host agent of the node's host (``StartNode``,
 ``StopNode``). Termination is read from the `NodeState` events host agents publish;
-readiness from those *and* from the node's liveliness token as seen by this session: peers
-do not route for each other, so until the engine itself sees the token it has no link to
-the node and a control request would reach nobody.
+readiness from those *and* from the node's liveliness token as seen by this session. The
+node declares its token after its control queryable, so once the token has reached this
+session through the router, so has the queryable, and a control request will find it
+(the host agent seeing the token says nothing about what this session has been told).
 
 Each event gets a local sequence number and a wait only accepts events that arrived after
 its request, so an old RUNNING or STOPPED of an earlier instance is never mistaken for the
@@ -139,8 +140,8 @@ class ZenohActuator:
             self._wait(
                 [s.name for s in specs],
                 mark,
-                # RUNNING (the host agent saw the token) and the token seen here, which means
-                # this session has its own link to the node: its control requests will arrive.
+                # RUNNING (the host agent saw the token) and the token seen here: this
+                # session also knows the node's control queryable, declared before it.
                 done=lambda evs: (
                     any(e.state == "RUNNING" for e in evs) and evs[-1].node in self.alive
                 ),

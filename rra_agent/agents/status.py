@@ -35,7 +35,8 @@ def configure_status(p: argparse.ArgumentParser) -> None:
 def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
     """The engine's status and every host agent's node list, as plain data."""
     out: dict[str, Any] = {"engine": None, "nodes": []}
-    # Peers do not route for each other: query the engine once its token is visible here.
+    # A client just connected has not been told about the engine yet: query it once its
+    # token has reached this session (its queryable was declared before the token).
     engine_token = f"{client.keys.prefix}/alive/*/resolution"
     with contextlib.suppress(TimeoutError):
         wait_until(

@@ -1,4 +1,4 @@
-"""The Node SDK: write a component as a `Node` subclass, run it as its own Zenoh peer process.
+"""The Node SDK: write a component as a `Node` subclass, run it as its own Zenoh process.
 
 A node's logic only sees a `NodeContext` (parameters, ``publish``, clock, active flag) and the
 events it is handed (``on_message``, ``step``, ``on_params``...), so the same class runs

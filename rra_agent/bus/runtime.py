@@ -39,7 +39,7 @@ _STAMP = struct.Struct("<d")
 
 
 def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Session:
-    """Open a Zenoh session. With ``wait_connected``, return only once a peer is linked
+    """Open a Zenoh session. With ``wait_connected``, return only once the hub is linked
     (``scouting/delay=0`` makes open return before the connect endpoints are reached, so a
     query sent at once would find nobody); raise `NoPeer` after ``connect_timeout_ms``."""
     session = zenoh.open(bus.to_zenoh())
@@ -48,7 +48,7 @@ def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Sessi
         while not (session.info.routers_zid() or session.info.peers_zid()):
             if time.monotonic() >= deadline:
                 session.close()
-                raise NoPeer(f"no peer reachable at {', '.join(bus.connect)}")
+                raise NoPeer(f"nothing reachable at {', '.join(bus.connect)}")
             time.sleep(0.002)
     return session
 

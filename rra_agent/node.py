@@ -1,9 +1,19 @@
-"""``python -m rra_agent.node``: run one component node as its own Zenoh peer process.
+"""The Node SDK, and ``python -m rra_agent.node``: one component node as its own process.
 
-The node's `NodeSpec` comes as JSON in ``RRA_NODE_SPEC`` (or ``--spec FILE``) and the bus
-configuration in ``RRA_BUS_CONFIG``; both are set by the host agent that starts the node.
-Exit status: 0 after a clean shutdown, 2 when the spec or implementation is unusable (the
-supervisor treats that as fatal rather than restarting it forever).
+Write a component as a `Node` subclass. A node's logic only sees a `NodeContext`
+(parameters, ``publish``, clock, active flag) and the events it is handed (``on_message``,
+``step``, ``on_params``...), so the same class runs
+
+- on the bus, in its own process: ``python -m rra_agent.node``, driven by
+  `rra_agent.bus.runtime.NodeRuntime`. The node's `NodeSpec` comes as JSON in
+  ``RRA_NODE_SPEC`` (or ``--spec FILE``) and the bus configuration in ``RRA_BUS_CONFIG``;
+  both are set by the host agent that starts it. Exit status: 0 after a clean shutdown, 2
+  when the spec or implementation is unusable (the supervisor does not restart it);
+- in a unit test, without any bus: `NodeHarness` (like dora's MockNode).
+
+`NodeCore` is the transport-independent middle: it owns the node instance, its parameters,
+ports (the key expressions each is bound to), the active flag and the counters, and answers
+control requests (`rra_agent.bus.messages.NodeRequest`). Both runtimes wrap it.
 """
 
 from __future__ import annotations
@@ -11,12 +21,472 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any, ClassVar, Protocol
 
 import msgspec
 
+from rra_agent.bus import messages as m
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.errors import RraError
 
+
+def _enc_hook(obj: Any) -> Any:
+    """Let nodes publish numpy arrays and scalars without importing numpy here."""
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
+
+
+_DATA_ENC = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
+_DATA_DEC = msgspec.msgpack.Decoder()
+
+
+def encode_data(data: Any) -> bytes:
+    return _DATA_ENC.encode(data)
+
+
+def decode_data(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Decode a data sample; raise ValueError if it is not a msgpack map."""
+    try:
+        value = _DATA_DEC.decode(payload)
+    except msgspec.DecodeError as e:
+        raise ValueError(f"not msgpack: {e}") from None
+    if not isinstance(value, dict):
+        raise ValueError(f"a data sample must be a map, got {type(value).__name__}")
+    return value
+
+
+#: A raw subscription's callback: (key, payload, sender's stamp or None).
+RawCallback = Callable[[str, bytes, "float | None"], None]
+
+
+class Transport(Protocol):
+    """What `NodeCore` needs from the bus (or from a test harness)."""
+
+    def publish(self, port: str, payload: bytes, stamp: float) -> None: ...
+
+    def rebind(self, port: str, direction: str, keys: list[str]) -> None: ...
+
+    def subscribe(self, key_expr: str, callback: RawCallback) -> None: ...
+
+
+class NodeContext:
+    """The node's view of the world: its name, parameters, clock, ``publish`` and active flag."""
+
+    def __init__(self, core: NodeCore) -> None:
+        self._core = core
+
+    @property
+    def name(self) -> str:
+        return self._core.spec.name
+
+    @property
+    def system(self) -> str:
+        return self._core.spec.system
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """Current parameter values (read-only view; changes come through `Node.on_params`)."""
+        return dict(self._core.params)
+
+    def param(self, name: str, default: Any = None) -> Any:
+        return self._core.params.get(name, default)
+
+    @property
+    def active(self) -> bool:
+        return self._core.active
+
+    def now(self) -> float:
+        return self._core.clock()
+
+    def publish(self, port: str, data: Any) -> bool:
+        """Publish ``data`` (a map of the port's data type) on an output port.
+
+        Returns False (and publishes nothing) while the node is inactive.
+        """
+        return self._core.publish(port, data)
+
+    def log(self, message: str) -> None:
+        self._core.log(message)
+
+    def subscribe(self, key_expr: str, callback: RawCallback) -> None:
+        """Listen on a key expression outside the node's data ports, e.g.
+        ``Keys(self.system).inject_all`` (fault injections).
+
+        ``callback(key, payload, stamp)`` gets the raw payload (decode it yourself) and runs
+        under the node's lock, like `Node.on_message`; an exception in it is counted and
+        logged. Call it from `Node.on_start`; the subscription lasts as long as the node and
+        is not a port (no Rewire, not in Describe).
+        """
+        self._core.subscribe_raw(key_expr, callback)
+
+
+class Node:
+    """Base class of a component's logic. Override what you need; all hooks are optional.
+
+    ``rate_hz`` > 0 makes the runtime call `step` periodically; a ``rate_hz`` parameter in
+    the node's spec overrides the class attribute.
+    """
+
+    rate_hz: ClassVar[float] = 0.0
+
+    def __init__(self, ctx: NodeContext) -> None:
+        self.ctx = ctx
+
+    def on_start(self) -> None:
+        """Called once, after ports and parameters are set up and before the node is ready."""
+
+    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
+        """A sample arrived on input ``port`` (``stamp``: the sender's wall-clock send time)."""
+
+    def step(self, now: float) -> None:
+        """Periodic work at ``rate_hz``."""
+
+    def on_params(self, changed: dict[str, Any]) -> None:
+        """Parameters changed at run time (``ctx.params`` already holds the new values)."""
+
+    def on_active(self, active: bool) -> None:
+        """The node was activated or deactivated."""
+
+    def export_state(self) -> Any:
+        """State handed to a replacement node (msgpack-encodable); None = nothing."""
+        return None
+
+    def import_state(self, state: Any) -> None:
+        """Take over the state exported by the node this one replaces."""
+
+    def on_stop(self) -> None:
+        """Called once when the node shuts down."""
+
+
+class NodeError(RraError):
+    """A control request a node refuses (unknown port or parameter, bad value)."""
+
+
+def load_node_class(path: str) -> type[Node]:
+    """Import ``pkg.module.ClassName`` (or ``pkg.module:ClassName``) and check it is a Node."""
+    import importlib
+
+    mod_name, sep, cls_name = path.replace(":", ".").rpartition(".")
+    if not sep:
+        raise NodeError(f"implementation {path!r} is not a dotted path 'pkg.module.Class'")
+    try:
+        module = importlib.import_module(mod_name)
+    except ImportError as e:
+        raise NodeError(f"cannot import {mod_name!r} for implementation {path!r}: {e}") from None
+    cls = getattr(module, cls_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, Node)):
+        raise NodeError(f"{path!r} is not a subclass of rra_agent.node.Node")
+    return cls
+
+
+def _same_kind(old: Any, new: Any) -> bool:
+    if old is None:
+        return True
+    if isinstance(old, bool) or isinstance(new, bool):
+        return isinstance(old, bool) and isinstance(new, bool)
+    if isinstance(old, int | float):
+        return isinstance(new, int | float) and (isinstance(old, float) or isinstance(new, int))
+    return isinstance(new, type(old))
+
+
+class NodeCore:
+    """Transport-independent node machinery; every entry point holds one re-entrant lock."""
+
+    def __init__(
+        self,
+        spec: m.NodeSpec,
+        node_cls: type[Node],
+        transport: Transport,
+        *,
+        clock: Callable[[], float] = time.time,
+        logger: Callable[[str], None] | None = None,
+        pid: int = 0,
+    ) -> None:
+        self.spec = spec
+        self.transport = transport
+        self.clock = clock
+        self.pid = pid
+        self._logger = logger
+        self.lock = threading.RLock()
+        self.params: dict[str, Any] = dict(spec.params)
+        self.ports: dict[str, m.PortSpec] = {
+            name: msgspec.structs.replace(p, keys=list(p.keys)) for name, p in spec.ports.items()
+        }
+        #: Output port names (a port never changes direction; `publish` checks this set only).
+        self._outputs = frozenset(n for n, p in self.ports.items() if p.direction == "publish")
+        self.active = spec.active
+        self.received = 0
+        self.published = 0
+        self.dropped = 0
+        self.errors = 0
+        self.stop_requested = threading.Event()
+        self.node = node_cls(NodeContext(self))
+
+    # ---- lifecycle ---------------------------------------------------------------------
+    def start(self) -> None:
+        with self.lock:
+            if self.spec.state is not None:
+                self.node.import_state(self.spec.state)
+            self.node.on_start()
+
+    def stop(self) -> None:
+        with self.lock:
+            self._guard("on_stop", self.node.on_stop)
+
+    @property
+    def rate_hz(self) -> float:
+        rate = self.params.get("rate_hz", type(self.node).rate_hz)
+        return float(rate) if isinstance(rate, int | float) else 0.0
+
+    def step(self, now: float) -> None:
+        with self.lock:
+            self._guard("step", self.node.step, now)
+
+    # ---- data --------------------------------------------------------------------------
+    def deliver(self, port: str, payload: bytes | bytearray | memoryview, stamp: float | None):
+        """A raw sample arrived for input ``port``: decode, count, hand to the node.
+
+        The per-sample hot path: decoding and the node call are inlined (no helper frames).
+        """
+        try:
+            data = _DATA_DEC.decode(payload)
+        except msgspec.DecodeError as e:
+            self._drop(port, f"not msgpack: {e}")
+            return
+        if not isinstance(data, dict):
+            self._drop(port, f"a data sample must be a map, got {type(data).__name__}")
+            return
+        with self.lock:
+            self.received += 1
+            try:
+                self.node.on_message(port, data, stamp)
+            except Exception as e:  # a bug in node code must not reach the bus callback
+                self.errors += 1
+                self.log(f"on_message raised {type(e).__name__}: {e}")
+
+    def _drop(self, port: str, why: str) -> None:
+        with self.lock:
+            self.dropped += 1
+        self.log(f"dropped malformed sample on {port}: {why}")
+
+    def publish(self, port: str, data: Any) -> bool:
+        if port not in self._outputs:
+            raise NodeError(f"node {self.spec.name} has no output port {port!r}")
+        if not self.active:
+            return False
+        self.transport.publish(port, _DATA_ENC.encode(data), self.clock())
+        self.published += 1
+        return True
+
+    def subscribe_raw(self, key_expr: str, callback: RawCallback) -> None:
+        def guarded(key: str, payload: bytes, stamp: float | None) -> None:
+            with self.lock:
+                self._guard(f"subscription {key_expr}", callback, key, payload, stamp)
+
+        self.transport.subscribe(key_expr, guarded)
+
+    # ---- control -----------------------------------------------------------------------
+    def handle(self, request: m.NodeRequest) -> m.Reply:
+        """Answer one control request; never raises."""
+        with self.lock:
+            try:
+                return self._handle(request)
+            except NodeError as e:
+                return m.Err(message=str(e), code="refused")
+            except Exception as e:  # a bug in node code must not kill the control endpoint
+                self.errors += 1
+                return m.Err(message=f"{type(e).__name__}: {e}", code="node_error")
+
+    def _handle(self, request: m.NodeRequest) -> m.Reply:
+        match request:
+            case m.Describe():
+                return m.Ok(result=msgspec.to_builtins(self.describe()))
+            case m.SetParams(params=params):
+                self._set_params(params)
+                return m.Ok()
+            case m.Rewire(port=port, keys=keys):
+                self._rewire(port, keys)
+                return m.Ok()
+            case m.Activate(state=state):
+                if state is not None:
+                    self.node.import_state(state)
+                self._set_active(True)
+                return m.Ok()
+            case m.Deactivate():
+                self._set_active(False)
+                return m.Ok()
+            case m.ExportState():
+                return m.Ok(result=self.node.export_state())
+            case m.ImportState(state=state):
+                self.node.import_state(state)
+                return m.Ok()
+            case m.Shutdown():
+                self.stop_requested.set()
+                return m.Ok()
+        raise NodeError(f"unsupported request {type(request).__name__}")
+
+    def _set_params(self, params: dict[str, Any]) -> None:
+        for name, value in params.items():
+            if name not in self.params:
+                known = ", ".join(sorted(self.params)) or "none"
+                raise NodeError(f"node {self.spec.name} has no parameter {name!r} (known: {known})")
+            if not _same_kind(self.params[name], value):
+                raise NodeError(
+                    f"parameter {name!r} of node {self.spec.name} is "
+                    f"{type(self.params[name]).__name__}, got {value!r}"
+                )
+        changed = {k: v for k, v in params.items() if self.params[k] != v}
+        self.params.update(params)
+        if changed:
+            self.node.on_params(changed)
+
+    def _rewire(self, port: str, keys: list[str]) -> None:
+        p = self.ports.get(port)
+        if p is None:
+            known = ", ".join(sorted(self.ports)) or "none"
+            raise NodeError(f"node {self.spec.name} has no port {port!r} (known: {known})")
+        if p.direction == "publish" and len(keys) != 1:
+            raise NodeError(f"output port {port!r} publishes on exactly one key, got {keys}")
+        self.transport.rebind(port, p.direction, list(keys))
+        self.ports[port] = msgspec.structs.replace(p, keys=list(keys))
+
+    def _set_active(self, active: bool) -> None:
+        if active != self.active:
+            self.active = active
+            self.node.on_active(active)
+
+    def describe(self) -> m.NodeInfo:
+        impl = self.spec.implementation
+        return m.NodeInfo(
+            name=self.spec.name,
+            implementation=impl if isinstance(impl, str) else " ".join(impl.command),
+            pid=self.pid,
+            host=self.spec.host,
+            active=self.active,
+            params=dict(self.params),
+            ports=[
+                m.PortInfo(name=n, direction=p.direction, type=p.type, keys=list(p.keys))
+                for n, p in self.ports.items()
+            ],
+            received=self.received,
+            published=self.published,
+            dropped=self.dropped,
+        )
+
+    # ---- helpers -----------------------------------------------------------------------
+    def _guard(self, what: str, fn: Callable[..., Any], *args: Any) -> None:
+        """Run node code; an exception is counted and logged, never propagated to the bus."""
+        try:
+            fn(*args)
+        except Exception as e:
+            self.errors += 1
+            self.log(f"{what} raised {type(e).__name__}: {e}")
+
+    def log(self, message: str) -> None:
+        if self._logger is not None:
+            self._logger(f"[{self.spec.name}] {message}")
+
+
+class _CaptureTransport:
+    """The harness' transport: records what the node publishes and how ports are bound."""
+
+    def __init__(self) -> None:
+        self.published: list[tuple[str, bytes, float]] = []
+        self.bindings: dict[str, list[str]] = {}
+        self.raw: dict[str, list[RawCallback]] = {}
+
+    def publish(self, port: str, payload: bytes, stamp: float) -> None:
+        self.published.append((port, payload, stamp))
+
+    def rebind(self, port: str, direction: str, keys: list[str]) -> None:
+        self.bindings[port] = keys
+
+    def subscribe(self, key_expr: str, callback: RawCallback) -> None:
+        self.raw.setdefault(key_expr, []).append(callback)
+
+
+class NodeHarness:
+    """Drive a `Node` without a bus: send inputs, step time, make control requests.
+
+    >>> h = NodeHarness(MyNode, params={"gain": 2.0}, ports={"out": ("publish", "Cmd")})
+    >>> h.send("in", {"x": 1.0}); h.step(0.01)
+    >>> h.outputs("out")
+    """
+
+    def __init__(
+        self,
+        node_cls: type[Node],
+        *,
+        name: str = "node",
+        params: dict[str, Any] | None = None,
+        ports: dict[str, tuple[str, str]] | None = None,
+        active: bool = True,
+        state: Any = None,
+        now: float = 0.0,
+    ) -> None:
+        self.time = now
+        self.transport = _CaptureTransport()
+        spec = m.NodeSpec(
+            system="test",
+            name=name,
+            host="local",
+            implementation=f"{node_cls.__module__}.{node_cls.__qualname__}",
+            params=dict(params or {}),
+            ports={
+                p: m.PortSpec(direction=d, type=t, keys=[f"rra/test/data/{name}/{p}"])  # type: ignore[arg-type]
+                for p, (d, t) in (ports or {}).items()
+            },
+            active=active,
+            state=state,
+        )
+        self.logs: list[str] = []
+        self.core = NodeCore(
+            spec, node_cls, self.transport, clock=lambda: self.time, logger=self.logs.append
+        )
+        self.core.start()
+
+    @property
+    def node(self) -> Node:
+        return self.core.node
+
+    def send(self, port: str, data: Any, stamp: float | None = None) -> None:
+        self.core.deliver(port, encode_data(data), stamp)
+
+    def send_raw(self, port: str, payload: bytes) -> None:
+        self.core.deliver(port, payload, None)
+
+    def deliver_raw(self, key_expr: str, payload: bytes, stamp: float | None = None) -> int:
+        """Hand ``payload`` to the node's raw subscriptions on exactly ``key_expr`` (as the
+        node subscribed it, e.g. ``rra/test/inject/**``); returns how many got it."""
+        callbacks = self.transport.raw.get(key_expr, [])
+        for cb in callbacks:
+            cb(key_expr, payload, stamp)
+        return len(callbacks)
+
+    def step(self, now: float | None = None) -> None:
+        if now is not None:
+            self.time = now
+        self.core.step(self.time)
+
+    def request(self, request: m.NodeRequest) -> m.Reply:
+        # Round-trip through the wire codec so the harness checks what the bus would carry.
+        codec: m.Codec[m.NodeRequest] = m.Codec(m.NodeRequest)
+        return self.core.handle(codec.decode(codec.encode(request)))
+
+    def outputs(self, port: str | None = None) -> list[dict[str, Any]]:
+        return [decode_data(p) for (q, p, _) in self.transport.published if port in (None, q)]
+
+    def iter_published(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        for port, payload, _ in self.transport.published:
+            yield port, decode_data(payload)
+
+
+# ---- the process entry point ----------------------------------------------------------
 SPEC_ENV = "RRA_NODE_SPEC"
 EXIT_CONFIG = 2
 
@@ -35,8 +505,6 @@ def run_node(spec: NodeSpec) -> int:
     and by the host agent's fork server.
     """
     from rra_agent.bus.config import BusConfig
-    from rra_agent.bus.node import load_node_class
-    from rra_agent.errors import RraError
 
     try:
         if not isinstance(spec.implementation, str):

@@ -7,11 +7,11 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from rra_agent.agents.adoption import Observed, spec_from_info, takeover_plan
-from rra_agent.agents.deployment import deploy
-from rra_agent.agents.executor import spec_for
 from rra_agent.bus.keys import Keys
 from rra_agent.core import resolution as r
+from rra_agent.deployment import deploy
+from rra_agent.engines.adoption import Observed, spec_from_info, takeover_plan
+from rra_agent.engines.executor import spec_for
 
 DATA = Path(__file__).parent / "data" / "relay_system"
 K = Keys("relay_system")
@@ -124,7 +124,7 @@ def test_a_running_node_that_does_not_answer_is_restarted_not_started_twice(worl
 
 
 def test_only_parameters_the_runtime_model_manages_are_set_back(world):
-    from rra_agent.agents.adoption import managed_parameters
+    from rra_agent.engines.adoption import managed_parameters
 
     target, expected = world
     tgt = target("Direct", gain=3.0)

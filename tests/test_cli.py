@@ -18,8 +18,8 @@ import pytest
 import yaml
 from conftest import copy_mini, plant, position
 
-from rra_agent import cli
 from rra_agent.cli import main
+from rra_agent.cli import commands as cli
 from rra_agent.errors import RraError
 
 pytest.importorskip("rra_agent.dsl.uvl")
@@ -460,5 +460,5 @@ def test_validate_parses_the_adaptation_rules(
 
 
 def test_lazy_handlers_import_on_use() -> None:
-    handler = cli.lazy("rra_agent.cli:split_selection")
+    handler = cli.lazy("rra_agent.cli.commands:split_selection")
     assert handler(["A,B"]) == ["A", "B"]  # type: ignore[arg-type]

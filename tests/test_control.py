@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.node import NodeHarness
 from rra_agent.library.motors import working_motors
+from rra_agent.node import NodeHarness
 from rra_agent.sim import control as c
 from rra_agent.sim.model import N_MOTORS, Quadcopter, QuadParams
 from rra_agent.sim.nodes import (

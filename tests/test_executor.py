@@ -8,12 +8,12 @@ from typing import Any
 import msgspec
 import pytest
 
-from rra_agent.agents.executor import Ctl, Executor, StepFailed, spec_for
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.core import resolution as r
 from rra_agent.core.features import complete_deployment
+from rra_agent.engines.executor import Ctl, Executor, StepFailed, spec_for
 from rra_agent.models.loader import load_package
 from rra_agent.models.resolution import Replacement, StateTransfer
 from rra_agent.models.system import SystemModel

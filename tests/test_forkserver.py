@@ -7,10 +7,10 @@ import signal
 
 from conftest import free_port, pid_alive
 
-from rra_agent.agents.forkserver import ForkServer
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.messages import NodeSpec, PortSpec
+from rra_agent.host.forkserver import ForkServer
 from rra_agent.node import SPEC_ENV
 
 

@@ -12,7 +12,7 @@ import zenoh
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.node import decode_data, encode_data
+from rra_agent.node import decode_data, encode_data
 
 SYSTEM = "hosttest"
 K = Keys(SYSTEM)
@@ -64,7 +64,7 @@ def relay_spec(name: str = "relay") -> m.NodeSpec:
 @pytest.fixture
 def agent(procs, bus, tmp_path):
     proc = procs.python(
-        "rra_agent.agents.host",
+        "rra_agent.host.agent",
         "--system", SYSTEM, "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
         name="agent",

@@ -19,11 +19,11 @@ import msgspec
 import pytest
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.node import Node, NodeHarness, decode_data, load_node_class
 from rra_agent.core.resolution import resolve_deployment, resolve_runtime
 from rra_agent.library.laser import closest_obstacle
 from rra_agent.models.loader import load_package
 from rra_agent.models.system import Component, SystemModel, parse_endpoint
+from rra_agent.node import Node, NodeHarness, decode_data, load_node_class
 from rra_agent.nodes.object_storing import (
     ArmController,
     DwaLocalNavigation,

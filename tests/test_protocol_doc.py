@@ -36,7 +36,7 @@ import pytest
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.node import decode_data, encode_data
+from rra_agent.node import decode_data, encode_data
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "protocol.md"

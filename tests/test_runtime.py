@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rra_agent.agents.events import read_events
-from rra_agent.agents.status import gather
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.keys import Keys
+from rra_agent.cli.status import gather
+from rra_agent.engines.events import read_events
 
 DATA = Path(__file__).parent / "data" / "relay_system"
 K = Keys("relay_system")
@@ -122,7 +122,7 @@ def test_measurement_change_swaps_rewires_and_sets_cv_parameter(system):
     assert info.result["params"]["offset"] == pytest.approx(7.0)
     # What it now receives comes through `filtered` (offset 100 added there).
     out: list[dict] = []
-    from rra_agent.bus.node import decode_data
+    from rra_agent.node import decode_data
 
     sub = sys_.client.session.declare_subscriber(
         K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
@@ -255,15 +255,18 @@ def test_restarted_resolution_engine_adopts_the_running_nodes(system):
     before = {n["node"]: n.get("pid") for n in st["nodes"] if n["state"] == "RUNNING"}
     engine_pid = before.pop("resolution")
     assert sys_.client.host("local", m.SignalNode(node="resolution", signal=signal.SIGKILL))
+
     def adopted() -> list:
         return [e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
                 and e.kind == "adopt" and e.outcome == "ok"]  # fmt: skip
 
     st = sys_.wait(
-        lambda s: sys_.node(s, "resolution").get("pid") not in (None, engine_pid)
-        and sys_.node(s, "resolution")["state"] == "RUNNING"
-        and s["engine"] is not None
-        and adopted(),
+        lambda s: (
+            sys_.node(s, "resolution").get("pid") not in (None, engine_pid)
+            and sys_.node(s, "resolution")["state"] == "RUNNING"
+            and s["engine"] is not None
+            and adopted()
+        ),
         "the resolution engine restarted and adopted the nodes",
     )
     # The engine came back with the selection it had applied, and took the nodes over:

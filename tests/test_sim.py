@@ -9,8 +9,8 @@ import pytest
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.node import NodeHarness
 from rra_agent.library.motors import expected_current, working_motors
+from rra_agent.node import NodeHarness
 from rra_agent.sim.model import GRAVITY, SPIN, Quadcopter, QuadParams
 from rra_agent.sim.nodes import VehicleSimulator
 
@@ -275,6 +275,3 @@ def test_injections_through_the_sdk_raw_subscription() -> None:
     assert h.deliver_raw(Keys("test").inject_all, payload) == 1
     h.step(0.002)
     assert [e["detail"] for e in events(h) if e["kind"] == "fault"] == ["break_motor motor=1"]
-
-
-

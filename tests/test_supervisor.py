@@ -6,14 +6,14 @@ import signal
 
 import pytest
 
-from rra_agent.agents.supervisor import (
+from rra_agent.bus.messages import NodeSpec
+from rra_agent.host.supervisor import (
     RestartPolicy,
     State,
     StopPolicy,
     Supervisor,
     Transition,
 )
-from rra_agent.bus.messages import NodeSpec
 
 
 class FakeHost:

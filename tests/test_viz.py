@@ -197,7 +197,7 @@ def run_system(procs, bus, run_dir: Path, *extra: str, adapt: bool) -> dict[str,
         "rra_agent", "up", str(DATA), "--run-dir", str(run_dir), "-q",
         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra, name="up",
     )  # fmt: skip
-    from rra_agent.agents.status import gather
+    from rra_agent.cli.status import gather
 
     with BusClient(bus, "relay_system") as client:
 

@@ -34,14 +34,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _benchutil import median, p99, print_table
 
-from rra_agent.agents.actuator import ZenohActuator
-from rra_agent.agents.deployment import deploy
-from rra_agent.agents.executor import Executor, spec_for
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.runtime import open_session
 from rra_agent.core import resolution as r
+from rra_agent.deployment import deploy
+from rra_agent.engines.actuator import ZenohActuator
+from rra_agent.engines.executor import Executor, spec_for
 
 
 def write_package(root: Path, n: int, standby: bool) -> None:
@@ -122,7 +122,7 @@ def run_case(n: int, standby: bool, repeat: int) -> tuple[list[float], list[floa
         port = free_port()
         bus = BusConfig(connect=[f"tcp/127.0.0.1:{port}"], multicast=False, lease_ms=2000)
         agent = subprocess.Popen(
-            [sys.executable, "-m", "rra_agent.agents.host", "--system", "bench", "--host",
+            [sys.executable, "-m", "rra_agent.host.agent", "--system", "bench", "--host",
              "local", "--hub", "--log-dir", str(root / "logs"), "--connect", bus.connect[0],
              "--no-multicast", "--lease-ms", "2000"],
             env={**os.environ, "RERUN_ANALYTICS": "0"},

@@ -29,8 +29,8 @@ import zenoh
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.node import Node, NodeCore
 from rra_agent.errors import RraError
+from rra_agent.node import Node, NodeCore
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)

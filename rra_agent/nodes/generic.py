@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rra_agent.bus.node import Node
+from rra_agent.node import Node
 
 
 class Relay(Node):

@@ -24,10 +24,10 @@ from typing import Annotated, Any
 import msgspec
 from yaml.nodes import ScalarNode
 
-from rra_agent.agents.deployment import Deployment
 from rra_agent.bus.keys import check_topic
 from rra_agent.core.features import complete_deployment, default_runtime_selection
 from rra_agent.core.resolution import peers_of, resolve_deployment, topic_of
+from rra_agent.deployment import Deployment
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
 from rra_agent.models.base import Model
 from rra_agent.models.loader import load_package
@@ -40,7 +40,7 @@ Name = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]+$")]
 Seconds = Annotated[float, msgspec.Meta(ge=0.0)]
 Duration = Annotated[float, msgspec.Meta(gt=0.0, le=600.0)]
 Period = Annotated[float, msgspec.Meta(gt=0.0)]
-ENGINES = ("monitor", "adaptation", "resolution")  # as rra_agent.agents.up.ENGINES
+ENGINES = ("monitor", "adaptation", "resolution")  # as rra_agent.cli.up.ENGINES
 ACTIONS = ("set_params", "publish", "malformed", "kill", "freeze", "resume", "inject")
 
 

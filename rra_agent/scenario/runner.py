@@ -37,13 +37,13 @@ import msgspec
 import yaml
 import zenoh
 
-from rra_agent.agents.events import read_events
-from rra_agent.agents.localhost import die_with_parent
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.config import BusConfig, free_port
-from rra_agent.bus.node import decode_data, encode_data
 from rra_agent.bus.runtime import NoPeer
+from rra_agent.engines.events import read_events
+from rra_agent.host.processes import die_with_parent
+from rra_agent.node import decode_data, encode_data
 from rra_agent.scenario import expectations as x
 from rra_agent.scenario.model import ScenarioCase, TimedStep
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.node import Node, NodeContext
+from rra_agent.node import Node, NodeContext
 from rra_agent.sim import control
 from rra_agent.sim.model import N_MOTORS, Quadcopter, QuadParams
 

@@ -147,7 +147,7 @@ def format_event(ev: m.AdaptationEvent | m.NodeState) -> str:
 def run_events(args: argparse.Namespace) -> int:
     enc = msgspec.json.Encoder()
     if args.log:
-        from rra_agent.agents.events import read_events
+        from rra_agent.engines.events import read_events
 
         for ev in read_events(args.log):
             print(enc.encode(ev).decode() if args.json else format_event(ev), flush=True)

@@ -6,7 +6,7 @@ replacements, inactive); then, for each new run-time selection the Adaptation En
 publishes on ``rra/<system>/selection``, it computes the target model (the configured model
 plus the Run-time Resolution Model's transformations for the selected features, CV values
 included), diffs it against the current model, and executes the plan transactionally
-(`rra_agent.agents.executor`). Every plan becomes an `AdaptationEvent` (cause, steps,
+(`rra_agent.engines.executor`). Every plan becomes an `AdaptationEvent` (cause, steps,
 outcome, phase durations), published and written to ``<run-dir>/events.jsonl`` together with
 the host agents' `NodeState` transitions.
 
@@ -29,19 +29,19 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent.agents.actuator import ZenohActuator
-from rra_agent.agents.adoption import managed_parameters, observe, takeover_plan
-from rra_agent.agents.deployment import Deployment
-from rra_agent.agents.events import EventSink
-from rra_agent.agents.executor import Executor, Outcome, spec_for
-from rra_agent.agents.loop import MainLoop
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
+from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core import resolution as r
 from rra_agent.core.features import default_runtime_selection
+from rra_agent.deployment import Deployment
+from rra_agent.engines.actuator import ZenohActuator
+from rra_agent.engines.adoption import managed_parameters, observe, takeover_plan
+from rra_agent.engines.events import EventSink
+from rra_agent.engines.executor import Executor, Outcome, spec_for
 from rra_agent.errors import RraError
 from rra_agent.models.system import Component, SystemModel
 from rra_agent.viz.rerun_log import Logger, open_logger
@@ -292,8 +292,7 @@ class ResolutionEngine:
         """The specs that run ``components`` wired as ``model`` connects them."""
         subs = r.subscriptions(model)
         return [
-            spec_for(self.keys, c, **r.wiring(c, subs), default_host=self.host)
-            for c in components
+            spec_for(self.keys, c, **r.wiring(c, subs), default_host=self.host) for c in components
         ]
 
     # ---- the applied selection survives a restart of this engine -------------------------
@@ -393,8 +392,8 @@ class ResolutionEngine:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.agents.resolution --package PKG --select F,...``."""
-    from rra_agent.agents.engine_cli import engine_arguments, engine_setup
+    """``python -m rra_agent.engines.resolution --package PKG --select F,...``."""
+    from rra_agent.engines.launch import engine_arguments, engine_setup
 
     parser = engine_arguments("rra resolution", __doc__)
     parser.add_argument("--retry-after", type=float, default=5.0)

@@ -19,17 +19,17 @@ from typing import Any
 
 import zenoh
 
-from rra_agent.agents.deployment import Deployment
-from rra_agent.agents.loop import MainLoop
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.node import decode_data
+from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.context import ContextMonitor
 from rra_agent.core.resolution import topic_of
+from rra_agent.deployment import Deployment
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
+from rra_agent.node import decode_data
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
@@ -150,8 +150,8 @@ class MonitorProcess:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.agents.monitor --package PKG --select F,...``."""
-    from rra_agent.agents.engine_cli import engine_arguments, engine_setup
+    """``python -m rra_agent.engines.monitor --package PKG --select F,...``."""
+    from rra_agent.engines.launch import engine_arguments, engine_setup
 
     args = engine_arguments("rra monitor", __doc__).parse_args(argv)
     setup = engine_setup(args, NAME)

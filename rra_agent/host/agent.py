@@ -24,13 +24,13 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent.agents.localhost import LocalHost
-from rra_agent.agents.loop import MainLoop
-from rra_agent.agents.supervisor import RestartPolicy, StopPolicy, Supervisor, Transition
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
+from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
+from rra_agent.host.processes import LocalHost
+from rra_agent.host.supervisor import RestartPolicy, StopPolicy, Supervisor, Transition
 
 TICK = 0.02
 _REQ = m.Codec[m.HostRequest](m.HostRequest)
@@ -254,7 +254,7 @@ def run(args) -> int:  # argparse.Namespace
 
     allowed = None
     if args.package:
-        from rra_agent.agents.deployment import deploy
+        from rra_agent.deployment import deploy
 
         allowed = deploy(args.package).implementations
     agent = HostAgent(
@@ -265,7 +265,7 @@ def run(args) -> int:  # argparse.Namespace
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.agents.host``: the same as ``rra agent``."""
+    """``python -m rra_agent.host.agent``: the same as ``rra agent``."""
     import argparse
 
     parser = argparse.ArgumentParser(prog="rra agent", description=__doc__.split("\n\n")[0])

@@ -35,7 +35,7 @@ class Command:
     """One subcommand: ``configure`` adds its arguments, ``run`` returns the exit status.
 
     A new subcommand is one more entry in `COMMANDS`; its handler may live in another module
-    (``run=lazy("rra_agent.agents.up:run")``).
+    (``run=lazy("rra_agent.cli.up:run")``).
     """
 
     help: str
@@ -199,18 +199,18 @@ COMMANDS: dict[str, Command] = {
     ),
     "up": Command(
         "run a system on this machine until Ctrl-C (engines and nodes as Zenoh peers)",
-        lambda p: _configure("rra_agent.agents.up:configure", p),
-        lazy("rra_agent.agents.up:run"),
+        lambda p: _configure("rra_agent.cli.up:configure", p),
+        lazy("rra_agent.cli.up:run"),
     ),
     "status": Command(
         "show a running system: selection, CV values, nodes with their state",
-        lambda p: _configure("rra_agent.agents.status:configure_status", p),
-        lazy("rra_agent.agents.status:run_status"),
+        lambda p: _configure("rra_agent.cli.status:configure_status", p),
+        lazy("rra_agent.cli.status:run_status"),
     ),
     "events": Command(
         "follow the adaptation events of a running system (or print an events.jsonl)",
-        lambda p: _configure("rra_agent.agents.status:configure_events", p),
-        lazy("rra_agent.agents.status:run_events"),
+        lambda p: _configure("rra_agent.cli.status:configure_events", p),
+        lazy("rra_agent.cli.status:run_events"),
     ),
     "demo": Command(
         "the paper's evaluation: a quadcopter loses a motor, RRA swaps its controller",
@@ -219,13 +219,13 @@ COMMANDS: dict[str, Command] = {
     ),
     "param": Command(
         "print or set the parameters of a running node (NAME=VALUE ...)",
-        lambda p: _configure("rra_agent.agents.status:configure_param", p),
-        lazy("rra_agent.agents.status:run_param"),
+        lambda p: _configure("rra_agent.cli.status:configure_param", p),
+        lazy("rra_agent.cli.status:run_param"),
     ),
     "agent": Command(
         "serve this machine as a host of a system: start and supervise its nodes",
-        lambda p: _configure("rra_agent.agents.host:configure", p),
-        lazy("rra_agent.agents.host:run"),
+        lambda p: _configure("rra_agent.host.agent:configure", p),
+        lazy("rra_agent.host.agent:run"),
     ),
     "test": Command(
         "run scenarios (*.scenario.yaml) headless and print the verdict of each expectation",

@@ -14,9 +14,9 @@ import sys
 
 import msgspec
 
-from rra_agent.agents.deployment import Deployment, deploy
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.deployment import Deployment, deploy
 from rra_agent.errors import RraError
 from rra_agent.node import SPEC_ENV
 

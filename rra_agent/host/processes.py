@@ -4,7 +4,7 @@ A node is started as ``python -m rra_agent.node`` (Python implementations) or as
 command (external implementations), with its spec in ``RRA_NODE_SPEC`` and the bus
 configuration in ``RRA_BUS_CONFIG``; stdout and stderr go to ``<log_dir>/<node>.log``.
 
-Python nodes are forked from a pre-imported interpreter (`rra_agent.agents.forkserver`),
+Python nodes are forked from a pre-imported interpreter (`rra_agent.host.forkserver`),
 which saves each node ~70 ms of CPU at start.
 
 No orphans: on Linux every child gets ``PR_SET_PDEATHSIG = SIGKILL``, so it dies with the
@@ -33,7 +33,7 @@ from rra_agent.bus.messages import NodeSpec
 from rra_agent.node import SPEC_ENV
 
 if TYPE_CHECKING:
-    from rra_agent.agents.forkserver import ForkServer
+    from rra_agent.host.forkserver import ForkServer
 
 _PR_SET_PDEATHSIG = 1
 
@@ -93,7 +93,7 @@ class LocalHost:
         log_path = self.log_dir / f"{spec.name}.log"
         if isinstance(spec.implementation, str) and self._fork_server_wanted:
             if self.zygote is None:
-                from rra_agent.agents.forkserver import ForkServer
+                from rra_agent.host.forkserver import ForkServer
 
                 self.zygote = ForkServer(self._preload)
             pid = self.zygote.spawn(spec, self._env(spec), str(log_path))

@@ -28,10 +28,10 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent.agents.executor import Ctl, StepFailed
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.bus.keys import Keys
+from rra_agent.engines.executor import Ctl, StepFailed
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _ANY = m.Codec[Any](Any)

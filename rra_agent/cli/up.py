@@ -15,10 +15,10 @@ import sys
 import time
 from pathlib import Path
 
-from rra_agent.agents.deployment import Deployment, deploy
-from rra_agent.agents.host import HostAgent
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
+from rra_agent.deployment import Deployment, deploy
+from rra_agent.host.agent import HostAgent
 from rra_agent.models.system import Command
 
 ENGINES = ("monitor", "adaptation", "resolution")
@@ -65,7 +65,7 @@ def engine_specs(
         cmd = [
             sys.executable,
             "-m",
-            f"rra_agent.agents.{engine}",
+            f"rra_agent.engines.{engine}",
             "--package",
             str(dep.package.root),
             *select,

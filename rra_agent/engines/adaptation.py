@@ -19,13 +19,13 @@ import time
 import msgspec
 import zenoh
 
-from rra_agent.agents.deployment import Deployment
-from rra_agent.agents.loop import MainLoop
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import Keys
+from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.rules import Engine, TickResult
+from rra_agent.deployment import Deployment
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
@@ -161,8 +161,8 @@ class AdaptationProcess:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.agents.adaptation --package PKG --select F,...``."""
-    from rra_agent.agents.engine_cli import engine_arguments, engine_setup
+    """``python -m rra_agent.engines.adaptation --package PKG --select F,...``."""
+    from rra_agent.engines.launch import engine_arguments, engine_setup
 
     parser = engine_arguments("rra adaptation", __doc__)
     parser.add_argument("--tick", type=float, default=0.05, help="periodic evaluation (s)")

@@ -34,8 +34,8 @@ from typing import IO, Any
 
 import msgspec
 
-from rra_agent.agents.localhost import die_with_parent
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.host.processes import die_with_parent
 
 #: What every Python node needs: imported once, in the zygote.
 PRELOAD = ("zenoh", "msgspec", "rra_agent.bus.runtime", "rra_agent.node")
@@ -84,7 +84,7 @@ def _status(raw: int) -> int:
 
 
 def serve(preload: Iterable[str] = ()) -> int:
-    """The zygote's main loop (``python -m rra_agent.agents.forkserver [MODULE ...]``)."""
+    """The zygote's main loop (``python -m rra_agent.host.forkserver [MODULE ...]``)."""
     _preload((*PRELOAD, *preload))
     rsig, wsig = os.pipe()
     os.set_blocking(wsig, False)
@@ -135,7 +135,7 @@ class ForkServer:
 
     def __init__(self, preload: Iterable[str] = ()) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rra_agent.agents.forkserver", *preload],
+            [sys.executable, "-m", "rra_agent.host.forkserver", *preload],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             preexec_fn=die_with_parent if sys.platform == "linux" else None,

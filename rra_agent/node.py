@@ -30,8 +30,11 @@ from typing import Any, ClassVar, Protocol
 import msgspec
 
 from rra_agent.bus import messages as m
+from rra_agent.bus.counters import MAX_PAYLOAD, Counters, RateLimitedLog
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
+from rra_agent.models.system import ParamType, coerce_parameter
 
 
 def _enc_hook(obj: Any) -> Any:
@@ -42,6 +45,7 @@ def _enc_hook(obj: Any) -> Any:
 
 
 _DATA_ENC = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
+_MAX_DATA = MAX_PAYLOAD["data"]
 _DATA_DEC = msgspec.msgpack.Decoder()
 
 
@@ -184,14 +188,18 @@ def load_node_class(path: str) -> type[Node]:
     return cls
 
 
-def _same_kind(old: Any, new: Any) -> bool:
-    if old is None:
-        return True
-    if isinstance(old, bool) or isinstance(new, bool):
-        return isinstance(old, bool) and isinstance(new, bool)
-    if isinstance(old, int | float):
-        return isinstance(new, int | float) and (isinstance(old, float) or isinstance(new, int))
-    return isinstance(new, type(old))
+def _kind_of(value: Any) -> ParamType | None:
+    """The declared type a value of a spec without declarations stands for."""
+    for type_, cls in (
+        ("bool", bool),
+        ("int", int),
+        ("float", float),
+        ("str", str),
+        ("list", list),
+    ):
+        if isinstance(value, cls):
+            return type_  # type: ignore[return-value]
+    return None
 
 
 class NodeCore:
@@ -220,10 +228,18 @@ class NodeCore:
         #: Output port names (a port never changes direction; `publish` checks this set only).
         self._outputs = frozenset(n for n, p in self.ports.items() if p.direction == "publish")
         self.active = spec.active
-        self.received = 0
+        #: Declared type and bounds per parameter (from the spec, else the initial values').
+        self.decl: dict[str, m.ParamDecl] = dict(spec.decl)
+        for name, value in spec.params.items():
+            kind = _kind_of(value)
+            if name not in self.decl and kind is not None:
+                self.decl[name] = m.ParamDecl(type=kind)
+        self.counters = Counters()
         self.published = 0
-        self.dropped = 0
         self.errors = 0
+        #: The newest leader fence accepted (requests with older ones are refused).
+        self.fence: Term | None = (spec.fence.epoch, spec.fence.leader) if spec.fence else None
+        self._refusals = RateLimitedLog(self.log)
         self.stop_requested = threading.Event()
         self.node = node_cls(NodeContext(self))
 
@@ -253,6 +269,9 @@ class NodeCore:
 
         The per-sample hot path: decoding and the node call are inlined (no helper frames).
         """
+        if len(payload) > _MAX_DATA:
+            self._drop(port, f"{len(payload)} bytes, more than the {_MAX_DATA} allowed")
+            return
         try:
             data = _DATA_DEC.decode(payload)
         except msgspec.DecodeError as e:
@@ -262,7 +281,7 @@ class NodeCore:
             self._drop(port, f"a data sample must be a map, got {type(data).__name__}")
             return
         with self.lock:
-            self.received += 1
+            self.counters.received += 1
             try:
                 self.node.on_message(port, data, stamp)
             except Exception as e:  # a bug in node code must not reach the bus callback
@@ -271,8 +290,16 @@ class NodeCore:
 
     def _drop(self, port: str, why: str) -> None:
         with self.lock:
-            self.dropped += 1
-        self.log(f"dropped malformed sample on {port}: {why}")
+            self.counters.dropped += 1
+        self._refusals(f"dropped sample on {port}", why)
+
+    @property
+    def received(self) -> int:
+        return self.counters.received
+
+    @property
+    def dropped(self) -> int:
+        return self.counters.dropped
 
     def publish(self, port: str, data: Any) -> bool:
         if port not in self._outputs:
@@ -303,7 +330,22 @@ class NodeCore:
                 return m.Err(message=f"{type(e).__name__}: {e}", code="node_error")
 
     def _handle(self, request: m.NodeRequest) -> m.Reply:
+        fence = getattr(request, "fence", None)
+        if fence is not None and not isinstance(request, m.Claim) and not self._admit(fence):
+            return self._refuse(
+                "stale_fence",
+                f"{request.__struct_config__.tag} from leader {fence.leader} (epoch "
+                f"{fence.epoch}) refused: leader {self.fence[1]} (epoch {self.fence[0]}) "  # type: ignore[index]
+                "has acted since",
+            )
         match request:
+            case m.Ping():
+                return m.Ok(result={"name": self.spec.name, "pid": self.pid})
+            case m.Stats():
+                return m.Ok(result=self.stats())
+            case m.Claim(fence=claim):
+                accepted = self._admit(claim)
+                return m.Ok(result={"accepted": accepted, "fence": list(self.fence or ())})
             case m.Describe():
                 return m.Ok(result=msgspec.to_builtins(self.describe()))
             case m.SetParams(params=params):
@@ -330,18 +372,38 @@ class NodeCore:
                 return m.Ok()
         raise NodeError(f"unsupported request {type(request).__name__}")
 
+    def _admit(self, fence: m.Fence) -> bool:
+        """Accept requests of this leader from now on, unless a newer one has acted."""
+        term = (fence.epoch, fence.leader)
+        if not newer(term, self.fence):
+            return False
+        self.fence = term
+        return True
+
+    def _refuse(self, code: str, message: str) -> m.Err:
+        self.counters.rejected += 1
+        self._refusals(f"refused ({code})", message)
+        return m.Err(message=message, code=code)
+
     def _set_params(self, params: dict[str, Any]) -> None:
+        """Check every value against its declaration first: all are set, or none."""
+        values = {}
         for name, value in params.items():
             if name not in self.params:
                 known = ", ".join(sorted(self.params)) or "none"
+                self.counters.rejected += 1
                 raise NodeError(f"node {self.spec.name} has no parameter {name!r} (known: {known})")
-            if not _same_kind(self.params[name], value):
-                raise NodeError(
-                    f"parameter {name!r} of node {self.spec.name} is "
-                    f"{type(self.params[name]).__name__}, got {value!r}"
-                )
-        changed = {k: v for k, v in params.items() if self.params[k] != v}
-        self.params.update(params)
+            decl = self.decl.get(name)
+            if decl is None:  # undeclared and started as nil: anything goes
+                values[name] = value
+                continue
+            try:
+                values[name] = coerce_parameter(decl.type, value, decl.min, decl.max)
+            except ValueError as e:
+                self.counters.rejected += 1
+                raise NodeError(f"parameter {name!r} of node {self.spec.name}: {e}") from None
+        changed = {k: v for k, v in values.items() if self.params[k] != v}
+        self.params.update(values)
         if changed:
             self.node.on_params(changed)
 
@@ -373,10 +435,18 @@ class NodeCore:
                 m.PortInfo(name=n, direction=p.direction, type=p.type, keys=list(p.keys))
                 for n, p in self.ports.items()
             ],
-            received=self.received,
+            received=self.counters.received,
             published=self.published,
-            dropped=self.dropped,
+            dropped=self.counters.dropped,
+            rejected=self.counters.rejected,
         )
+
+    def stats(self) -> m.ProcessStats:
+        c = self.counters
+        c.extra.update(published=self.published, errors=self.errors)
+        if self.fence is not None:
+            c.extra["fence_epoch"] = self.fence[0]
+        return c.stats(self.spec.name, "node", self.pid)
 
     # ---- helpers -----------------------------------------------------------------------
     def _guard(self, what: str, fn: Callable[..., Any], *args: Any) -> None:
@@ -509,6 +579,9 @@ def run_node(spec: NodeSpec) -> int:
     try:
         if not isinstance(spec.implementation, str):
             raise ValueError("an external-command implementation is run directly, not here")
+        for folder in reversed(spec.path):  # the package's own modules come first
+            if folder not in sys.path:
+                sys.path.insert(0, folder)
         node_cls = load_node_class(spec.implementation)
         bus = BusConfig.from_env()
     except (ValueError, RraError) as e:

@@ -1,56 +1,114 @@
-"""The fork server: nodes forked from a pre-imported interpreter, reaped and reported."""
+"""The fork server and the host's process table: nodes forked from a pre-imported
+interpreter become children of the host agent's process (a subreaper), which reaps them; the
+fork server's death leaves them running; every node beats into its heartbeat slot."""
 
 from __future__ import annotations
 
 import os
 import signal
+import sys
+from pathlib import Path
 
-from conftest import free_port, pid_alive
+import pytest
+from conftest import pid_alive
 
 from rra_agent.bus.client import wait_until
-from rra_agent.bus.config import BusConfig
+from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.messages import NodeSpec, PortSpec
-from rra_agent.host.forkserver import ForkServer
-from rra_agent.node import SPEC_ENV
+from rra_agent.bus.runtime import open_session
+from rra_agent.host.processes import LocalHost
+from rra_agent.models.system import Command, Supervision
 
 
-def spec(name: str, impl: str = "rra_agent.nodes.generic.Relay") -> NodeSpec:
+def spec(name: str, impl: str | Command = "rra_agent.nodes.generic.Relay") -> NodeSpec:
     return NodeSpec(
         system="fork", name=name, host="h", implementation=impl,
         ports={"in": PortSpec(direction="subscribe", type="X", keys=["rra/fork/data/a"]),
                "out": PortSpec(direction="publish", type="X", keys=["rra/fork/data/b"])},
+        supervision=Supervision(heartbeat_timeout=0.4),
     )  # fmt: skip
 
 
-def env() -> dict[str, str]:
-    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"], connect_timeout_ms=100)
-    return {"RRA_BUS_CONFIG": bus.to_env(), SPEC_ENV: ""}
+def parent_of(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[1])
 
 
-def test_forked_node_runs_is_the_zygotes_child_and_reports_its_exit(tmp_path):
-    fs = ForkServer()
+@pytest.fixture
+def host(tmp_path: Path):
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.as_hub())
+    h = LocalHost("h", bus, tmp_path)
     try:
-        pid = fs.spawn(spec("n1"), env(), str(tmp_path / "n1.log"))
-        assert fs.poll(pid) is None and pid_alive(pid)
-        with open(f"/proc/{pid}/stat") as f:
-            ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-        assert ppid == fs.proc.pid  # forked by the zygote, not started by exec
-        os.kill(pid, signal.SIGKILL)
-        wait_until(lambda: fs.poll(pid) is not None, 10, "the exit report")
-        assert fs.poll(pid) == -signal.SIGKILL  # as subprocess.Popen.returncode would say
-        bad = fs.spawn(spec("n2", "no.such.Node"), env(), str(tmp_path / "n2.log"))
-        wait_until(lambda: fs.poll(bad) is not None, 10, "the bad node's exit")
-        assert fs.poll(bad) == 2  # unusable implementation: the supervisor's FATAL status
-        assert "no.such" in (tmp_path / "n2.log").read_text()
+        yield h
     finally:
-        fs.close()
-    assert fs.proc.returncode == 0
+        h.kill_all()
+        hub.close()
+    assert not h.names
 
 
-def test_nodes_die_with_the_zygote(tmp_path):
-    fs = ForkServer()
-    pid = fs.spawn(spec("n3"), env(), str(tmp_path / "n3.log"))
+def exits(host: LocalHost, pid: int) -> int:
+    seen: dict[int, int] = {}
+
+    def reaped() -> bool:
+        seen.update(host.reap())
+        return pid in seen
+
+    wait_until(reaped, 10, f"the exit of {pid}")
+    return seen[pid]
+
+
+def test_forked_node_is_our_child_and_its_exit_is_reaped_here(host: LocalHost, tmp_path):
+    pid = host.spawn(spec("n1"))
     assert pid_alive(pid)
-    fs.proc.kill()
-    fs.proc.wait()
-    wait_until(lambda: not pid_alive(pid), 10, "the node to die with its zygote")
+    # adopted once the zygote's intermediate process has exited
+    wait_until(lambda: parent_of(pid) == os.getpid(), 5, "the adoption")
+    assert host.zygote is not None and pid != host.zygote.pid
+    os.kill(pid, signal.SIGKILL)
+    assert exits(host, pid) == -signal.SIGKILL  # as subprocess.Popen.returncode would say
+    bad = host.spawn(spec("n2", "no.such.Node"))
+    assert exits(host, bad) == 2  # unusable implementation: the supervisor's FATAL status
+    assert "no.such" in (tmp_path / "n2.log").read_text()
+
+
+def test_nodes_outlive_their_fork_server_and_a_new_one_starts(host: LocalHost):
+    pid = host.spawn(spec("n3"))
+    zygote = host.zygote
+    assert zygote is not None
+    os.kill(zygote.pid, signal.SIGKILL)
+    wait_until(lambda: host.reap() or host.zygote_exits, 10, "the fork server's exit")
+    assert host.zygote_exits == [-signal.SIGKILL] and host.zygote is None
+    assert pid_alive(pid)  # the node goes on
+    again = host.spawn(spec("n4"))
+    assert host.zygote is not None and host.zygote.pid != zygote.pid
+    assert pid_alive(again) and host.zygote_starts == 2
+
+
+def test_a_node_beats_and_says_when_it_is_ready(host: LocalHost):
+    host.spawn(spec("n5"))
+    beat = wait_until(lambda: host.beats().get("n5"), 15, "a heartbeat")
+    assert beat.at > 0
+    wait_until(lambda: host.beats()["n5"].ready, 15, "the ready flag")
+
+
+def test_external_command_is_execed_with_its_env_and_stops_on_sigint(host: LocalHost, tmp_path):
+    script = tmp_path / "ext.py"
+    script.write_text(
+        "import os, signal, sys, time\n"
+        "print('got', os.environ['EXTRA'], 'hb' if os.environ.get('RRA_HEARTBEAT') else '-',"
+        " flush=True)\n"
+        "signal.sigwait({signal.SIGINT})\n"
+        "sys.exit(0)\n"
+    )
+    cmd = Command(command=[sys.executable, str(script)], env={"EXTRA": "yes"}, cwd=str(tmp_path))
+    pid = host.spawn(spec("ext", cmd))
+    log = tmp_path / "ext.log"
+    wait_until(lambda: log.exists() and "got yes hb" in log.read_text(), 10, "its output")
+    assert parent_of(pid) == os.getpid()
+    os.kill(pid, signal.SIGINT)  # not ignored, although the zygote ignores SIGINT
+    assert exits(host, pid) == 0
+
+
+def test_node_names_cannot_leave_the_log_folder(host: LocalHost):
+    with pytest.raises(ValueError):
+        host.spawn(spec("../../tmp/x"))

@@ -1,4 +1,5 @@
-"""The supervision state machine, driven by tick(now) with fake time and a fake host."""
+"""The supervision state machine, driven by tick(now) with fake time, a fake host and the
+observations a host agent feeds it (exits from the OS, heartbeats, probe answers)."""
 
 from __future__ import annotations
 
@@ -8,12 +9,14 @@ import pytest
 
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.host.supervisor import (
-    RestartPolicy,
+    Beat,
+    Notice,
     State,
     StopPolicy,
     Supervisor,
     Transition,
 )
+from rra_agent.models.system import Supervision
 
 
 class FakeHost:
@@ -21,191 +24,289 @@ class FakeHost:
 
     def __init__(self) -> None:
         self.next_pid = 100
-        self.running: dict[int, int | None] = {}  # pid -> exit status once exited
         self.signals: list[tuple[int, int]] = []
+        self.probes: list[tuple[str, int]] = []
         self.fail_spawn = False
-        self.ignore = set[int]()  # signals the process ignores
 
     def spawn(self, spec: NodeSpec) -> int:
         if self.fail_spawn:
             raise OSError("no such file")
         self.next_pid += 1
-        self.running[self.next_pid] = None
         return self.next_pid
 
     def signal(self, pid: int, sig: int) -> None:
         self.signals.append((pid, sig))
-        if sig not in self.ignore and self.running.get(pid) is None:
-            self.running[pid] = -sig
 
-    def poll(self, pid: int) -> int | None:
-        return self.running.get(pid)
-
-    def exit(self, pid: int, status: int) -> None:
-        self.running[pid] = status
+    def probe(self, name: str, pid: int, timeout: float) -> None:
+        self.probes.append((name, pid))
 
 
-def spec(name: str = "n") -> NodeSpec:
-    return NodeSpec(system="s", name=name, host="fake", implementation="x.Y")
+POLICY = Supervision(
+    heartbeat_timeout=2.0,
+    probe_timeout=0.5,
+    start_timeout=5.0,
+    max_restarts=2,
+    restart_window=10.0,
+    cooldown=30.0,
+    backoff_initial=1.0,
+    backoff_max=4.0,
+)
+
+
+def spec(name: str = "n", policy: Supervision = POLICY) -> NodeSpec:
+    return NodeSpec(system="s", name=name, host="fake", implementation="x.Y", supervision=policy)
+
+
+class Rig:
+    def __init__(self) -> None:
+        self.events: list[Transition] = []
+        self.notices: list[Notice] = []
+        self.host = FakeHost()
+        self.sup = Supervisor(
+            stop=StopPolicy(sigint_timeout=2.0, sigterm_timeout=2.0),
+            listener=self.events.append,
+            notices=self.notices.append,
+        )
+        self.now = 0.0
+
+    def run(self, *names: str, policy: Supervision = POLICY) -> None:
+        for n in names:
+            self.sup.add(spec(n, policy), self.host)
+            self.sup.start(n, self.now)
+            self.sup.on_ready(n, self.now)
+
+    def tick(self, dt: float, beats: dict[str, float | None] | None = None) -> None:
+        """Advance by dt in steps of 0.1 s. ``beats``: node -> time of its last heartbeat,
+        or None for a node that keeps beating (its last beat is always 0.05 s old)."""
+        end = self.now + dt
+        while self.now < end - 1e-9:
+            self.now = round(self.now + 0.1, 6)
+            seen = {
+                n: Beat(self.now - 0.05 if at is None else at) for n, at in (beats or {}).items()
+            }
+            self.sup.tick(self.now, seen)
+
+    def state(self, name: str = "n") -> State:
+        return self.sup.state(name)
+
+    def pid(self, name: str = "n") -> int:
+        pid = self.sup.procs[name].pid
+        assert pid is not None
+        return pid
+
+    def kills(self) -> list[int]:
+        return [pid for pid, sig in self.host.signals if sig == signal.SIGKILL]
 
 
 @pytest.fixture
-def sup() -> tuple[Supervisor, FakeHost, list[Transition]]:
-    events: list[Transition] = []
-    s = Supervisor(
-        restart=RestartPolicy(max_restarts=2, backoff_initial=1.0, start_timeout=5.0),
-        stop=StopPolicy(sigint_timeout=2.0, sigterm_timeout=2.0),
-        listener=events.append,
-    )
-    host = FakeHost()
-    s.add(spec(), host)
-    return s, host, events
+def rig() -> Rig:
+    return Rig()
 
 
-def states(events: list[Transition]) -> list[str]:
-    return [e.state.value for e in events]
+def test_start_ready_running(rig: Rig) -> None:
+    rig.sup.add(spec(), rig.host)
+    rig.sup.start("n", 0.0)
+    assert rig.state() == State.STARTING
+    rig.sup.on_ready("n", 0.1)
+    assert rig.state() == State.RUNNING
+    assert [e.state for e in rig.events] == [State.STARTING, State.RUNNING]
 
 
-def test_start_ready_stop(sup):
-    s, host, events = sup
-    s.start("n", 0.0)
-    assert s.state("n") == State.STARTING
-    s.on_alive("n", True, 0.1)
-    assert s.state("n") == State.RUNNING
-    s.stop("n", 1.0)
-    assert (101, signal.SIGINT) in host.signals
-    s.tick(1.1)
-    assert s.state("n") == State.STOPPED
-    assert states(events) == ["STARTING", "RUNNING", "STOPPING", "STOPPED"]
+def test_ready_flag_of_the_heartbeat_also_makes_it_running(rig: Rig) -> None:
+    rig.sup.add(spec(), rig.host)
+    rig.sup.start("n", 0.0)
+    rig.sup.tick(0.1, {"n": Beat(0.05, ready=True)})
+    assert rig.state() == State.RUNNING
 
 
-def test_stop_escalates_sigint_sigterm_sigkill(sup):
-    s, host, _ = sup
-    host.ignore = {signal.SIGINT, signal.SIGTERM}
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    s.stop("n", 1.0)
-    s.tick(2.9)
-    assert host.signals == [(101, signal.SIGINT)]
-    s.tick(3.0)  # sigint_timeout elapsed
-    assert host.signals[-1] == (101, signal.SIGTERM)
-    s.tick(5.0)  # sigterm_timeout elapsed
-    assert host.signals[-1] == (101, signal.SIGKILL)
-    s.tick(5.1)
-    assert s.state("n") == State.STOPPED
+def test_exit_reported_by_the_os_restarts_after_backoff(rig: Rig) -> None:
+    rig.run("n")
+    first = rig.pid()
+    rig.sup.on_exit(first, -9, 1.0)
+    assert rig.state() == State.BACKOFF
+    assert "status -9" in rig.events[-1].reason
+    rig.now = 1.0
+    rig.tick(1.0)
+    assert rig.state() == State.STARTING
+    assert rig.pid() != first
 
 
-def test_crash_restarts_with_backoff_then_fatal(sup):
-    s, host, events = sup
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    host.exit(101, -9)
-    s.tick(1.0)
-    assert s.state("n") == State.BACKOFF
-    s.tick(1.5)  # backoff 1.0 s not over
-    assert s.state("n") == State.BACKOFF
-    s.tick(2.0)
-    assert s.state("n") == State.STARTING and s.procs["n"].pid == 102
-    host.exit(102, 1)
-    s.tick(2.1)
-    assert s.state("n") == State.BACKOFF
-    s.tick(4.1)  # second backoff doubles: 2.0 s
-    assert s.state("n") == State.STARTING
-    host.exit(103, 1)
-    s.tick(4.2)
-    assert s.state("n") == State.FATAL
-    assert "gave up after 2 restarts" in events[-1].reason
+def test_start_timeout_kills_and_backs_off(rig: Rig) -> None:
+    rig.sup.add(spec(), rig.host)
+    rig.sup.start("n", 0.0)
+    pid = rig.pid()
+    rig.tick(5.05)
+    assert rig.state() == State.BACKOFF
+    assert pid in rig.kills()
+    rig.sup.on_exit(pid, -9, rig.now)  # the killed one's exit: no second failure
+    assert rig.state() == State.BACKOFF and rig.sup.procs["n"].restarts == 1
 
 
-def test_start_timeout_kills_and_backs_off(sup):
-    s, host, _ = sup
-    s.start("n", 0.0)
-    s.tick(4.9)
-    assert s.state("n") == State.STARTING
-    s.tick(5.0)
-    assert (101, signal.SIGKILL) in host.signals
-    assert s.state("n") == State.BACKOFF
+def test_restart_budget_then_fatal_then_retry_after_cooldown(rig: Rig) -> None:
+    rig.run("n")
+    for _ in range(2):
+        rig.sup.on_exit(rig.pid(), 1, rig.now)
+        assert rig.state() == State.BACKOFF
+        rig.tick(4.0)
+        rig.sup.on_ready("n", rig.now)
+    rig.sup.on_exit(rig.pid(), 1, rig.now)
+    assert rig.state() == State.FATAL
+    assert "2 restarts within 10 s" in rig.events[-1].reason
+    assert "retrying in 30 s" in rig.events[-1].reason
+    rig.tick(29.9)
+    assert rig.state() == State.FATAL
+    rig.tick(0.2)
+    assert rig.state() == State.STARTING
+    assert "cool-down" in rig.events[-1].reason
+    rig.sup.on_ready("n", rig.now)
+    rig.sup.on_exit(rig.pid(), 1, rig.now)
+    assert rig.state() == State.BACKOFF  # a fresh budget
 
 
-def test_lost_liveliness_of_running_process_kills_and_restarts(sup):
-    s, host, events = sup
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    s.on_alive("n", False, 3.0)  # frozen: token lease expired, process still there
-    assert (101, signal.SIGKILL) in host.signals
-    assert s.state("n") == State.BACKOFF
-    assert "liveliness lost" in events[-1].reason
-    s.tick(4.0)
-    assert s.state("n") == State.STARTING
+def test_failures_outside_the_window_do_not_count(rig: Rig) -> None:
+    rig.run("n")
+    for _ in range(5):
+        rig.sup.on_exit(rig.pid(), 1, rig.now)
+        assert rig.state() == State.BACKOFF
+        rig.tick(11.0)
+        rig.sup.on_ready("n", rig.now)
+    assert rig.state() == State.RUNNING
 
 
-def test_config_error_exit_is_fatal_without_restart(sup):
-    s, host, _ = sup
-    s.start("n", 0.0)
-    host.exit(101, 2)
-    s.tick(0.5)
-    assert s.state("n") == State.FATAL
-    assert host.next_pid == 101
+def test_config_error_is_fatal_and_retried_after_cooldown(rig: Rig) -> None:
+    rig.run("n")
+    rig.sup.on_exit(rig.pid(), 2, 0.5)
+    assert rig.state() == State.FATAL
+    assert "exit 2" in rig.events[-1].reason
+    rig.now = 0.5
+    rig.tick(30.1)
+    assert rig.state() == State.STARTING
 
 
-def test_clean_exit_is_exited_not_restarted(sup):
-    s, host, _ = sup
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    host.exit(101, 0)
-    s.tick(0.5)
-    s.tick(10.0)
-    assert s.state("n") == State.EXITED
+def test_exit_zero_is_final_unless_restart_always(rig: Rig) -> None:
+    rig.run("a")
+    rig.run("b", policy=Supervision(restart="always"))
+    rig.sup.on_exit(rig.pid("a"), 0, 0.1)
+    rig.sup.on_exit(rig.pid("b"), 0, 0.1)
+    assert rig.state("a") == State.EXITED
+    assert rig.state("b") == State.BACKOFF
 
 
-def test_spawn_failure_goes_to_backoff(sup):
-    s, host, events = sup
-    host.fail_spawn = True
-    s.start("n", 0.0)
-    assert s.state("n") == State.BACKOFF
-    assert "spawn failed" in events[-1].reason
+def test_stale_heartbeat_probe_answered_keeps_the_process(rig: Rig) -> None:
+    rig.run("n")
+    rig.tick(1.0, {"n": None})
+    rig.tick(2.0, {"n": 1.0})  # the last beat at t = 1.0
+    assert rig.state() == State.RUNNING  # 2.0 s old is not older than the 2 s deadline
+    rig.tick(0.2, {"n": 1.0})
+    assert rig.state() == State.UNRESPONSIVE
+    assert rig.host.probes == [("n", rig.pid())]
+    rig.sup.on_probe("n", rig.pid(), True, rig.now)
+    assert rig.state() == State.RUNNING
+    rig.tick(1.5, {"n": 1.0})  # still no beat, but the answer bought a grace period
+    assert rig.state() == State.RUNNING
+    assert rig.kills() == []
 
 
-def test_long_stable_run_resets_restart_budget(sup):
-    s, host, _ = sup
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    for pid, t in ((101, 1.0), (102, 100.0), (103, 200.0)):
-        host.exit(pid, 1)
-        s.tick(t)
-        assert s.state("n") == State.BACKOFF, t
-        s.tick(t + 1.0)
-        s.on_alive("n", True, t + 1.1)
-    assert s.procs["n"].restarts == 1
+def test_stale_heartbeat_and_failed_probe_kill_and_restart(rig: Rig) -> None:
+    rig.run("n")
+    pid = rig.pid()
+    rig.tick(2.2, {"n": 0.0})
+    assert rig.state() == State.UNRESPONSIVE
+    rig.tick(0.3, {"n": 0.0})  # probed at 2.1 s: 0.4 s without an answer
+    assert rig.state() == State.UNRESPONSIVE and rig.kills() == []
+    rig.tick(0.2, {"n": 0.0})  # no answer within probe_timeout
+    assert rig.kills() == [pid]
+    assert rig.state() == State.BACKOFF
+    assert "frozen" in rig.events[-1].reason
 
 
-def test_stop_during_backoff_is_immediate(sup):
-    s, host, _ = sup
-    s.start("n", 0.0)
-    host.exit(101, 1)
-    s.tick(0.1)
-    s.stop("n", 0.2)
-    assert s.state("n") == State.STOPPED
-    s.tick(10.0)
-    assert s.state("n") == State.STOPPED
+def test_a_refused_probe_kills_at_once(rig: Rig) -> None:
+    rig.run("n")
+    pid = rig.pid()
+    rig.tick(2.2, {"n": 0.0})
+    rig.sup.on_probe("n", pid, False, rig.now)
+    assert rig.kills() == [pid] and rig.state() == State.BACKOFF
 
 
-def test_token_lost_because_process_died_reports_the_exit(sup):
-    s, host, events = sup
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    host.exit(101, -9)
-    s.on_alive("n", False, 0.2)
-    assert s.state("n") == State.BACKOFF
-    assert "status -9" in events[-1].reason
-    assert (101, signal.SIGKILL) not in host.signals
+def test_heartbeat_resuming_while_probing_ends_the_suspicion(rig: Rig) -> None:
+    rig.run("n")
+    rig.tick(2.2, {"n": 0.0})
+    assert rig.state() == State.UNRESPONSIVE
+    rig.tick(0.1, {"n": None})
+    assert rig.state() == State.RUNNING
+    assert rig.kills() == []
 
 
-def test_stopped_transition_names_the_process_that_stopped(sup):
-    s, _host, events = sup
-    s.start("n", 0.0)
-    s.on_alive("n", True, 0.1)
-    s.stop("n", 1.0)
-    s.tick(1.1)
-    assert events[-1].state == State.STOPPED and events[-1].pid == 101
-    assert s.procs["n"].pid is None
+def test_common_mode_loss_is_rechecked_not_killed(rig: Rig) -> None:
+    rig.run("a", "b", "c", "d")
+    rig.tick(2.2, {"a": 0.0, "b": 0.0, "c": 0.0, "d": None})
+    assert rig.host.probes == [] and rig.kills() == []
+    assert [n.kind for n in rig.notices] == ["common_mode"]
+    assert rig.notices[0].nodes == ("a", "b", "c")
+    rig.tick(5.0, {"a": None, "b": None, "c": None, "d": None})  # they beat again
+    assert all(rig.state(n) == State.RUNNING for n in "abcd")
+    assert rig.kills() == [] and rig.host.probes == []
+
+
+def test_a_loss_that_outlasts_the_recheck_is_probed(rig: Rig) -> None:
+    rig.run("a", "b", "c")
+    rig.tick(2.2, {"a": 0.0, "b": 0.0, "c": 0.0})
+    assert rig.host.probes == [] and len(rig.notices) == 1
+    rig.tick(1.1, {"a": 0.0, "b": 0.0, "c": 0.0})
+    assert {n for n, _ in rig.host.probes} == {"a", "b", "c"}
+    for n in "ab":
+        rig.sup.on_probe(n, rig.pid(n), True, rig.now)
+    rig.tick(0.6, {"a": 0.0, "b": 0.0, "c": 0.0})
+    assert rig.state("a") == rig.state("b") == State.RUNNING
+    assert rig.state("c") == State.BACKOFF
+
+
+def test_a_late_tick_gives_every_node_a_grace_period(rig: Rig) -> None:
+    rig.run("n")
+    rig.tick(2.5, {"n": None})
+    last = rig.now - 0.05
+    rig.now += 3.0  # every process stalled for 3 s (this observer too): a 3 s old beat
+    rig.sup.tick(rig.now, {"n": Beat(last)})
+    assert rig.state() == State.RUNNING and rig.host.probes == []
+    rig.tick(0.3, {"n": None})
+    assert rig.state() == State.RUNNING and rig.host.probes == []
+
+
+def test_a_node_that_never_beat_is_not_judged_frozen(rig: Rig) -> None:
+    rig.run("n")  # an external command that does not implement the heartbeat
+    rig.tick(20.0)
+    assert rig.state() == State.RUNNING and rig.host.probes == []
+
+
+def test_stop_escalates_sigint_sigterm_sigkill(rig: Rig) -> None:
+    rig.run("n")
+    pid = rig.pid()
+    rig.sup.stop("n", 0.0)
+    assert rig.host.signals[-1] == (pid, signal.SIGINT)
+    rig.now = 0.0
+    rig.tick(2.05)
+    assert rig.host.signals[-1] == (pid, signal.SIGTERM)
+    rig.tick(2.05)
+    assert rig.host.signals[-1] == (pid, signal.SIGKILL)
+    rig.sup.on_exit(pid, -9, rig.now)
+    assert rig.state() == State.STOPPED
+    assert rig.sup.all_stopped()
+
+
+def test_stop_during_backoff_or_fatal(rig: Rig) -> None:
+    rig.run("a", "b")
+    rig.sup.on_exit(rig.pid("a"), 1, 0.0)
+    rig.sup.on_exit(rig.pid("b"), 2, 0.0)
+    rig.sup.stop("a", 0.1)
+    rig.sup.stop("b", 0.1)
+    assert rig.state("a") == rig.state("b") == State.STOPPED
+    rig.tick(40.0)
+    assert rig.state("a") == rig.state("b") == State.STOPPED
+
+
+def test_spawn_failure_counts_as_a_failure(rig: Rig) -> None:
+    rig.host.fail_spawn = True
+    rig.sup.add(spec(), rig.host)
+    rig.sup.start("n", 0.0)
+    assert rig.state() == State.BACKOFF
+    assert "spawn failed" in rig.events[-1].reason

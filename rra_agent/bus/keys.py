@@ -10,7 +10,11 @@
     rra/<system>/alive/<host>/<node>       liveliness tokens
     rra/<system>/host/<host>/ctl           host agent control (queryable)
     rra/<system>/hostagent/<host>          host agent liveliness token
-    rra/<system>/engine/<name>/ctl         engine control/status (queryable)
+    rra/<system>/engine/<name>/ctl         engine control/status (queryable): <name> is a
+                                           role (its leader answers) or a replica
+    rra/<system>/state/<role>              an engine leader's published state
+    rra/<system>/member/<role>/<replica>   liveliness token of each engine replica
+    rra/<system>/lead/<role>/<epoch>/<replica>  liveliness token of the role's leader
     rra/<system>/inject/**                 scenario injections (faults, context changes)
 """
 
@@ -87,6 +91,18 @@ class Keys:
 
     def engine_ctl(self, engine: str) -> str:
         return f"{self.prefix}/engine/{check_chunk(engine, 'engine')}/ctl"
+
+    def state(self, role: str) -> str:
+        return f"{self.prefix}/state/{check_chunk(role, 'engine role')}"
+
+    def member(self, role: str, replica: str) -> str:
+        """An engine replica's liveliness token (``replica`` may be ``*``)."""
+        replica = replica if replica == "*" else check_chunk(replica, "replica")
+        return f"{self.prefix}/member/{check_chunk(role, 'engine role')}/{replica}"
+
+    def lead(self, role: str) -> str:
+        """Prefix of the leader tokens of a role: ``.../lead/<role>/<epoch>/<replica>``."""
+        return f"{self.prefix}/lead/{check_chunk(role, 'engine role')}"
 
     def inject(self, what: str) -> str:
         return f"{self.prefix}/inject/{check_topic(what)}"

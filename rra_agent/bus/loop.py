@@ -3,7 +3,12 @@
 Zenoh runs callbacks on its own thread. Work that must be serialised (a supervisor, a plan
 execution, anything that spawns processes) is posted here and runs on the main thread, which
 sleeps in ``select`` on a self-pipe until work arrives, a periodic tick is due, or a signal
-(SIGINT/SIGTERM, via ``signal.set_wakeup_fd``) asks it to stop.
+(SIGINT/SIGTERM, and SIGCHLD where asked, via ``signal.set_wakeup_fd``) wakes it.
+
+The inbox is bounded: a flood of requests cannot grow memory without limit; `post` refuses
+the work (and counts it) when the inbox is full, and the caller answers "busy". The loop
+writes the process's heartbeat (`rra_agent.host.heartbeat`) while it runs, so a process whose
+main thread is stuck stops beating.
 """
 
 from __future__ import annotations
@@ -17,35 +22,71 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from rra_agent.host.heartbeat import Heartbeat
+
+#: Work items waiting at most; more are refused.
+INBOX = 10_000
+
 
 class MainLoop:
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        inbox: int = INBOX,
+        beat_every: float = 0.5,
+    ) -> None:
         self.clock = clock
-        self.inbox: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self.inbox: queue.Queue[Callable[[], None]] = queue.Queue(inbox)
         self._rsock, self._wsock = socket.socketpair()
         self._rsock.setblocking(False)
         self._wsock.setblocking(False)
         self.stopping = False
         self.errors = 0
+        #: Work refused because the inbox was full.
+        self.refused = 0
+        #: Called after every wake-up, before the posted work (e.g. reaping children).
+        self.on_wake: Callable[[], None] | None = None
+        self.heartbeat = Heartbeat.from_env()
+        self.beat_every = beat_every
+        self._next_beat = 0.0
+        self._signals: set[int] = set()
 
     def wake(self) -> None:
         with contextlib.suppress(BlockingIOError, OSError):  # a wake-up is already pending
             self._wsock.send(b"\0")
 
-    def post(self, fn: Callable[[], None]) -> None:
-        """Run ``fn`` on the main thread soon (safe from any thread)."""
-        self.inbox.put(fn)
+    def post(self, fn: Callable[[], None]) -> bool:
+        """Run ``fn`` on the main thread soon (safe from any thread); False when the inbox
+        is full (the work is dropped and counted)."""
+        try:
+            self.inbox.put_nowait(fn)
+        except queue.Full:
+            self.refused += 1
+            return False
         self.wake()
+        return True
 
     def request_stop(self, *_: Any) -> None:
         self.stopping = True
         self.wake()
 
-    def install_signals(self) -> None:
-        """SIGINT and SIGTERM end the loop (main thread only)."""
+    def install_signals(self, *, on_signal: Callable[[int], None] | None = None) -> None:
+        """SIGINT and SIGTERM end the loop (main thread only); ``on_signal`` sees each."""
+
+        def handler(signum: int, _frame: Any) -> None:
+            self._signals.add(signum)
+            if on_signal is not None:
+                on_signal(signum)
+            self.request_stop()
+
         signal.set_wakeup_fd(self._wsock.fileno(), warn_on_full_buffer=False)
-        signal.signal(signal.SIGINT, self.request_stop)
-        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+
+    def wake_on_sigchld(self) -> None:
+        """Let a child's exit wake the loop at once (its ``on_wake`` reaps it)."""
+        signal.signal(signal.SIGCHLD, lambda *_: None)
 
     def cycle(self, timeout: float | None) -> None:
         """Wait up to ``timeout`` for work, then run everything posted so far."""
@@ -54,22 +95,39 @@ class MainLoop:
             with contextlib.suppress(BlockingIOError, OSError):
                 while self._rsock.recv(256):
                     pass
+        if self.on_wake is not None:
+            self._run(self.on_wake)
         while True:
             try:
                 fn = self.inbox.get_nowait()
             except queue.Empty:
-                return
-            try:
-                fn()
-            except Exception as e:  # a failing job is reported, the loop goes on
-                self.errors += 1
-                print(f"rra: {type(e).__name__}: {e}", flush=True)
+                break
+            self._run(fn)
+        self._beat()
+
+    def _run(self, fn: Callable[[], None]) -> None:
+        try:
+            fn()
+        except Exception as e:  # a failing job is reported, the loop goes on
+            self.errors += 1
+            print(f"rra: {type(e).__name__}: {e}", flush=True)
+
+    def _beat(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_beat:
+            self.heartbeat.beat()
+            self._next_beat = now + self.beat_every
 
     def run(self, tick: Callable[[float], None] | None = None, period: float = 0.02) -> None:
         """Cycle until stopped, calling ``tick(now)`` about every ``period`` seconds."""
         next_tick = self.clock()
         while not self.stopping:
-            self.cycle(max(0.0, next_tick - self.clock()) if tick else None)
+            wait = self.beat_every if tick is None else max(0.0, next_tick - self.clock())
+            self.cycle(min(wait, self.beat_every))
             if tick is not None and self.clock() >= next_tick:
-                tick(self.clock())
+                self._run(lambda: tick(self.clock()))
                 next_tick = self.clock() + period
+
+    def set_ready(self) -> None:
+        """The process is up (its token declared): the heartbeat's ready flag."""
+        self.heartbeat.beat(ready=True)

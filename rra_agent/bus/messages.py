@@ -11,10 +11,15 @@ Channels and their unions:
 - ``ctx/<m>``           `CtxMessage`      = Measurement
 - ``selection``         `SelectionMessage` = Selection | ConflictReport
 - ``events``            `EventMessage`    = AdaptationEvent | NodeState
+- ``state/<role>``      `StateMessage`    = EngineState
 - ``node/<n>/ctl``      `NodeRequest` -> `Reply`
 - ``host/<h>/ctl``      `HostRequest` -> `Reply`
 - ``engine/<e>/ctl``    `EngineRequest` -> `Reply`
 - ``inject/**``         `Injection`
+
+Requests that change the running system carry a `Fence`: the epoch and name of the engine
+leader that sends them. A receiver refuses a request whose fence is older than the newest it
+has accepted, so a leader that was frozen and resumes cannot act after its successor has.
 """
 
 from __future__ import annotations
@@ -24,11 +29,13 @@ from typing import Any, Generic, Literal, TypeVar
 
 import msgspec
 
-from rra_agent.models.system import Implementation
+from rra_agent.models.system import Implementation, ParamType, Supervision
 
 T = TypeVar("T")
 
-NodeStateName = Literal["STOPPED", "STARTING", "RUNNING", "BACKOFF", "STOPPING", "EXITED", "FATAL"]
+NodeStateName = Literal[
+    "STOPPED", "STARTING", "RUNNING", "UNRESPONSIVE", "BACKOFF", "STOPPING", "EXITED", "FATAL"
+]
 Level = Literal["debug", "info", "warning", "error"]
 
 
@@ -36,6 +43,14 @@ class Msg(
     msgspec.Struct, tag_field="t", kw_only=True, omit_defaults=True, forbid_unknown_fields=True
 ):
     """Base of every wire message."""
+
+
+class Fence(msgspec.Struct, kw_only=True, forbid_unknown_fields=True, frozen=True):
+    """A leader's term: ``epoch`` grows with every change of leader; at equal epochs the
+    smaller ``leader`` name wins (`rra_agent.core.election.newer`)."""
+
+    epoch: int
+    leader: str
 
 
 # ---- context dependent measurements -------------------------------------------------------
@@ -71,6 +86,9 @@ class Selection(Msg, tag="selection"):
     changed: bool = False
     cause: list[FiredRule] = []
     rejected: list[str] = []
+    #: The Adaptation Engine leader that decided it (a selection from an older leader, or
+    #: from nobody, is refused by the Run-time Resolution Engine).
+    fence: Fence | None = None
 
 
 class ConflictReport(Msg, tag="conflict"):
@@ -97,6 +115,9 @@ class AdaptationEvent(Msg, tag="event"):
     #: Phase durations in seconds: detect, decide, plan, execute, total.
     durations: dict[str, float] = {}
     seq: int | None = None
+    #: The engine leader that acted, and the ``seq`` of the selection it acted on.
+    fence: Fence | None = None
+    selection: int | None = None
 
 
 class NodeState(Msg, tag="node_state"):
@@ -110,6 +131,8 @@ class NodeState(Msg, tag="node_state"):
     active: bool = True
     restarts: int = 0
     reason: str = ""
+    #: `spec_digest` of the spec the host agent (re)starts the node with.
+    digest: str = ""
 
 
 EventMessage = AdaptationEvent | NodeState
@@ -120,13 +143,29 @@ class Describe(Msg, tag="describe"):
     pass
 
 
+class Ping(Msg, tag="ping"):
+    """A direct probe: the process answers if it is not frozen (any control endpoint)."""
+
+
+class Stats(Msg, tag="stats"):
+    """Ask any process for its `ProcessStats` (received, dropped, rejected counts)."""
+
+
+class Claim(Msg, tag="claim"):
+    """A new leader makes itself known: older fences are refused from now on."""
+
+    fence: Fence
+
+
 class SetParams(Msg, tag="set_params"):
     params: dict[str, Any]
+    fence: Fence | None = None
 
 
 class Rewire(Msg, tag="rewire"):
     port: str
     keys: list[str]
+    fence: Fence | None = None
 
 
 class Activate(Msg, tag="activate"):
@@ -134,10 +173,11 @@ class Activate(Msg, tag="activate"):
     being replaced), so a switch with state transfer is one request, not two."""
 
     state: Any = None
+    fence: Fence | None = None
 
 
 class Deactivate(Msg, tag="deactivate"):
-    pass
+    fence: Fence | None = None
 
 
 class ExportState(Msg, tag="export_state"):
@@ -146,14 +186,25 @@ class ExportState(Msg, tag="export_state"):
 
 class ImportState(Msg, tag="import_state"):
     state: Any
+    fence: Fence | None = None
 
 
 class Shutdown(Msg, tag="shutdown"):
-    pass
+    fence: Fence | None = None
 
 
 NodeRequest = (
-    Describe | SetParams | Rewire | Activate | Deactivate | ExportState | ImportState | Shutdown
+    Describe
+    | SetParams
+    | Rewire
+    | Activate
+    | Deactivate
+    | ExportState
+    | ImportState
+    | Shutdown
+    | Ping
+    | Stats
+    | Claim
 )
 
 
@@ -175,6 +226,22 @@ class NodeInfo(Msg, tag="node_info"):
     received: int = 0
     published: int = 0
     dropped: int = 0
+    rejected: int = 0
+
+
+class ProcessStats(Msg, tag="process_stats"):
+    """Counters of one process, for ``rra status``: samples and requests received, dropped
+    (malformed, too large, or coalesced away under load) and rejected (refused: out of
+    bounds, unknown names, stale fences)."""
+
+    name: str
+    role: Literal["node", "host", "monitor", "adaptation", "resolution", "tool"]
+    pid: int
+    received: int = 0
+    dropped: int = 0
+    rejected: int = 0
+    #: Further counters by name (e.g. ``coalesced``, ``published``, ``restarts``).
+    counters: dict[str, int] = {}
 
 
 class Ok(Msg, tag="ok"):
@@ -190,6 +257,15 @@ Reply = Ok | Err
 
 
 # ---- node specification (how to start a node) ------------------------------------------
+class ParamDecl(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A parameter's declared type and bounds: every value set at run time is checked
+    against them by the node itself (and coerced to the type: a float stays a float)."""
+
+    type: ParamType
+    min: float | None = None
+    max: float | None = None
+
+
 class PortSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
     direction: Literal["publish", "subscribe"]
     type: str
@@ -209,19 +285,29 @@ class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     active: bool = True
     #: Exported state of a node this one replaces.
     state: Any = None
+    #: Declared type and bounds of each parameter (set_params is checked against them).
+    decl: dict[str, ParamDecl] = {}
+    supervision: Supervision = Supervision()
+    #: Folders put first on the import path (the system package's, for its own node classes).
+    path: list[str] = []
+    #: The newest leader fence the host agent has accepted: the node refuses older ones.
+    fence: Fence | None = None
 
 
 # ---- host agent control -----------------------------------------------------------------
 class StartNode(Msg, tag="start_node"):
-    """Supervise and start a node (replies once spawned; RUNNING follows as a NodeState)."""
+    """Supervise and start a node (replies once spawned; RUNNING follows as a NodeState).
+    A node already running with the same spec is left as it is (the reply says so)."""
 
     spec: NodeSpec
+    fence: Fence | None = None
 
 
 class StopNode(Msg, tag="stop_node"):
     """Stop a node (SIGINT, then SIGTERM, then SIGKILL) and stop supervising it."""
 
     node: str
+    fence: Fence | None = None
 
 
 class UpdateSpec(Msg, tag="update_spec"):
@@ -229,6 +315,7 @@ class UpdateSpec(Msg, tag="update_spec"):
     specs from now on (the running processes are left alone)."""
 
     specs: list[NodeSpec]
+    fence: Fence | None = None
 
 
 class SignalNode(Msg, tag="signal_node"):
@@ -242,7 +329,7 @@ class ListNodes(Msg, tag="list_nodes"):
     pass
 
 
-HostRequest = StartNode | StopNode | UpdateSpec | SignalNode | ListNodes
+HostRequest = StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
 
 
 # ---- engine control ---------------------------------------------------------------------
@@ -250,7 +337,47 @@ class Status(Msg, tag="status"):
     pass
 
 
-EngineRequest = Status | Describe
+class SetParam(Msg, tag="set_param"):
+    """An operator sets parameters of a node (``rra param``): they become part of the
+    Run-time Configured System Model, are checked against the declared bounds, applied to
+    the running node and re-applied whenever it is (re)started. ``reset`` drops earlier
+    operator values (back to the model's)."""
+
+    node: str
+    params: dict[str, Any] = {}
+    reset: list[str] = []
+
+
+class GetState(Msg, tag="get_state"):
+    """The engine's current `EngineState` (a restarted engine resumes from it)."""
+
+
+EngineRequest = Status | Describe | Ping | Stats | SetParam | GetState
+
+
+# ---- engine state -----------------------------------------------------------------------
+class EngineState(Msg, tag="engine_state"):
+    """The Run-time Configured System Model as the Run-time Resolution Engine leader holds
+    it: published on ``state/resolution`` whenever it changes, so a standby engine mirrors
+    it and takes over from it, and a restarted Adaptation Engine resumes from its selection.
+    """
+
+    fence: Fence
+    #: Grows with every change published by this leader.
+    version: int
+    selection: list[str]
+    cv: dict[str, float] = {}
+    #: Parameters set by operators, by node.
+    overrides: dict[str, dict[str, Any]] = {}
+    #: ``seq`` of the last selection applied, and the Adaptation Engine leader that sent it
+    #: (selections with older fences are refused).
+    applied: int = 0
+    selection_fence: Fence | None = None
+    running: list[NodeSpec] = []
+    standby: list[NodeSpec] = []
+
+
+StateMessage = EngineState
 
 
 # ---- scenario injections ----------------------------------------------------------------
@@ -288,6 +415,19 @@ class Codec(Generic[T]):
 
 
 _STAMP = struct.Struct("<d")
+
+
+def spec_digest(spec: NodeSpec) -> str:
+    """What a node is configured to be (implementation, host, parameters, wiring, active),
+    as a short hash: equal digests, equal configurations. The state to take over and the
+    fence are not part of it."""
+    import hashlib
+
+    fixed = msgspec.structs.replace(spec, state=None, fence=None)
+    return hashlib.blake2b(_DIGEST_ENC.encode(fixed), digest_size=8).hexdigest()
+
+
+_DIGEST_ENC = msgspec.msgpack.Encoder(order="sorted")
 
 
 def pack_stamp(t: float) -> bytes:

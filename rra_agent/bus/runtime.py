@@ -6,8 +6,10 @@ thread only sleeps in ``select`` until the next periodic ``step`` or a wake-up b
 self-pipe, written by SIGINT/SIGTERM (``signal.set_wakeup_fd``) and by a Shutdown request.
 
 Ready handshake: the liveliness token ``rra/<system>/alive/<host>/<node>`` is declared last,
-after every port is bound and ``on_start`` has run; its appearance means "ready", its
-disappearance (undeclared, process gone, or lease expired for a frozen process) "gone".
+after every port is bound and ``on_start`` has run; then the ready flag of the heartbeat is
+set. Heartbeat (`rra_agent.host.heartbeat`): the main loop writes it four times per
+``heartbeat_timeout``, holding the node's lock, so a node whose callbacks are stuck stops
+beating and its host agent probes it.
 Shutdown: ``on_stop``, token undeclared, session closed in ``finally`` (a session left open
 with callbacks declared keeps the interpreter from exiting).
 """
@@ -28,8 +30,10 @@ import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
+from rra_agent.bus.counters import too_large
 from rra_agent.bus.keys import Keys
 from rra_agent.errors import RraError
+from rra_agent.host.heartbeat import Heartbeat
 from rra_agent.node import Node, NodeCore
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
@@ -55,6 +59,11 @@ def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Sessi
 
 class NoPeer(RraError):
     """Nothing answered at the bus endpoints (is the system running? right --connect?)."""
+
+
+def beat_period(heartbeat_timeout: float) -> float:
+    """How often a process beats: four times per deadline, between 50 ms and 1 s."""
+    return min(1.0, max(0.05, heartbeat_timeout / 4)) if heartbeat_timeout > 0 else 1.0
 
 
 def data_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
@@ -129,6 +138,7 @@ class NodeRuntime:
         self._rsock.setblocking(False)
         self._wsock.setblocking(False)
         self._signalled = False
+        self.heartbeat = Heartbeat.from_env()
 
     def wake(self) -> None:
         with contextlib.suppress(BlockingIOError, OSError):  # a wake-up is already pending
@@ -165,6 +175,7 @@ class NodeRuntime:
             token = session.liveliness().declare_token(
                 self.keys.alive(self.spec.host, self.spec.name)
             )
+            self.heartbeat.beat(ready=True)
             self._loop(core)
             queryable.undeclare()
             return 0
@@ -178,16 +189,20 @@ class NodeRuntime:
 
     def _on_query(self, core: NodeCore):
         def callback(query: zenoh.Query) -> None:
-            payload = query.payload
+            raw = query.payload.to_bytes() if query.payload is not None else b""
             request: m.NodeRequest | None = None
-            try:
-                request = _CTL.decode(payload.to_bytes() if payload is not None else b"")
-            except Exception as e:  # malformed control request: refuse, count, carry on
-                with core.lock:
-                    core.dropped += 1
-                reply: m.Reply = m.Err(message=f"malformed request: {e}", code="malformed")
+            if too_large("node_ctl", len(raw)):
+                core.counters.dropped += 1
+                reply: m.Reply = m.Err(message=f"request of {len(raw)} bytes", code="too_large")
             else:
-                reply = core.handle(request)
+                try:
+                    request = _CTL.decode(raw)
+                except Exception as e:  # malformed control request: refuse, count, carry on
+                    core.counters.dropped += 1
+                    reply = m.Err(message=f"malformed request: {e}", code="malformed")
+                else:
+                    core.counters.received += 1
+                    reply = core.handle(request)
             query.reply(query.key_expr, _REPLY.encode(reply))
             if core.stop_requested.is_set() or (
                 isinstance(request, m.SetParams) and "rate_hz" in request.params
@@ -200,9 +215,16 @@ class NodeRuntime:
         rate = core.rate_hz
         period = 1.0 / rate if rate > 0 else None
         next_step = time.time() + (period or 0.0)
+        beat_every = beat_period(self.spec.supervision.heartbeat_timeout)
+        next_beat = time.monotonic()
         while not (self._signalled or core.stop_requested.is_set()):
-            timeout = None if period is None else max(0.0, next_step - time.time())
-            ready, _, _ = select.select([self._rsock], [], [], timeout)
+            if time.monotonic() >= next_beat:
+                self._beat(core, beat_every)
+                next_beat = time.monotonic() + beat_every
+            timeout = next_beat - time.monotonic()
+            if period is not None:
+                timeout = min(timeout, next_step - time.time())
+            ready, _, _ = select.select([self._rsock], [], [], max(0.0, timeout))
             if ready:
                 self._drain()
                 new_rate = core.rate_hz
@@ -210,12 +232,20 @@ class NodeRuntime:
                     rate, period = new_rate, (1.0 / new_rate if new_rate > 0 else None)
                     next_step = time.time() + (period or 0.0)
                 continue
-            if period is not None:
+            if period is not None and time.time() >= next_step:
                 now = time.time()
                 core.step(now)
                 next_step += period
                 if next_step < now:  # fell behind: skip, don't burst
                     next_step = now + period
+
+    def _beat(self, core: NodeCore, wait: float) -> None:
+        """Beat while holding the node's lock: a node stuck in a callback does not beat."""
+        if core.lock.acquire(timeout=wait):
+            try:
+                self.heartbeat.beat()
+            finally:
+                core.lock.release()
 
     def _drain(self) -> None:
         with contextlib.suppress(BlockingIOError, OSError):

@@ -1,23 +1,36 @@
 """The host agent (``rra agent``): starts, supervises and stops the node processes of one host.
 
 One per machine. It answers `HostRequest`s on ``rra/<system>/host/<host>/ctl``, runs a
-`Supervisor` over its children (restart policy, backoff, SIGINT -> SIGTERM -> SIGKILL), follows
-their liveliness tokens on ``rra/<system>/alive/<host>/*`` (ready handshake; a frozen process
-loses its token at lease expiry and is killed and restarted), and publishes every state
-transition as a `NodeState` on ``rra/<system>/events``.
+`Supervisor` over its children and publishes every state transition as a `NodeState` on
+``rra/<system>/events``. How it knows what its nodes do (docs/architecture.md, failure model):
+
+- an exit from the OS at once: the nodes are its children (`rra_agent.host.processes`), and
+  SIGCHLD wakes its loop, which reaps them;
+- readiness from the node's liveliness token (or the ready flag of its heartbeat);
+- a freeze from a heartbeat in shared memory older than the node's deadline, confirmed by a
+  direct probe (a ``Ping`` to the node's control endpoint; a process the kernel shows
+  stopped fails it at once). A token that disappears says nothing about the node (the bus
+  or the router may have stalled) and is never a reason to kill it.
+
+Requests that change what runs carry the leader fence of the Run-time Resolution Engine
+that sends them; one older than the newest fence accepted is refused (counted and logged).
+``StartNode`` of a node already running with the same spec and ``StopNode`` of a node that
+is not running succeed without doing anything, so a new leader can repeat a plan safely.
 
 It only starts implementations the system model declares: ``allowed`` is the set of
 implementations of the package it serves (None accepts any, for tests and tools).
 
-Threading: Zenoh callbacks only post to the `MainLoop`; the main thread owns the supervisor and
-spawns every process (the children's parent-death signal is tied to the spawning thread).
+Threading: Zenoh callbacks only post to the `MainLoop` (a bounded inbox: a flood of requests
+is answered "busy"); the main thread owns the supervisor and spawns every process (the
+children's parent-death signal is tied to the spawning thread).
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,28 +39,26 @@ import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.keys import Keys
+from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
+from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
-from rra_agent.host.processes import LocalHost
-from rra_agent.host.supervisor import RestartPolicy, StopPolicy, Supervisor, Transition
+from rra_agent.core.election import Term, newer
+from rra_agent.host.processes import LocalHost, process_state
+from rra_agent.host.supervisor import LIVE, Notice, State, StopPolicy, Supervisor, Transition
 
 TICK = 0.02
 _REQ = m.Codec[m.HostRequest](m.HostRequest)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
+_ANY = m.Codec[Any](Any)
+#: Signals a fault-injection request may send.
+INJECTABLE = frozenset({signal.SIGKILL, signal.SIGSTOP, signal.SIGCONT, signal.SIGTERM})
 
 
 def implementation_id(impl: m.NodeSpec | Any) -> str:
     i = impl.implementation if isinstance(impl, m.NodeSpec) else impl
     return i if isinstance(i, str) else " ".join(i.command)
-
-
-@dataclass
-class _Request:
-    query: zenoh.Query | None
-    request: m.HostRequest | None
-    error: str | None = None
 
 
 class HostAgent:
@@ -60,31 +71,42 @@ class HostAgent:
         *,
         hub: bool = False,
         allowed: Collection[str] | None = None,
-        restart: RestartPolicy | None = None,
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.keys = Keys(system)
-        self.host = host
+        self.host = check_chunk(host, "host")
         #: Children connect with ``bus``; the agent itself listens on the hub endpoint if ``hub``.
         self.bus = bus
         self.session_bus = bus.as_hub() if hub else bus
         preload = {i.rpartition(".")[0] for i in (allowed or ()) if " " not in i and "." in i}
-        self.local = LocalHost(host, bus, log_dir, preload=sorted(preload))
+        self.local = LocalHost(
+            host, bus, log_dir, preload=sorted(preload), prober=self._probe_later
+        )
         self.allowed = frozenset(allowed) if allowed is not None else None
         self.clock = clock
-        self.supervisor = Supervisor(restart=restart, stop=stop, listener=self._on_transition)
+        self.supervisor = Supervisor(
+            stop=stop, listener=self._on_transition, notices=self._on_notice
+        )
         self.loop = MainLoop(clock)
-        self.dropped = 0
+        self.loop.on_wake = self._reap
+        self.counters = Counters()
+        self._refusals = RateLimitedLog(lambda text: print(f"rra agent {host}: {text}", flush=True))
+        #: The newest fence of a Run-time Resolution Engine leader accepted.
+        self.fence: Term | None = None
         self._publisher: zenoh.Publisher | None = None
         #: Called with every NodeState this agent emits (e.g. ``rra up`` prints them).
         self.observers: list[Callable[[m.NodeState], None]] = []
+        #: Called with every AdaptationEvent this agent emits (supervision notices).
+        self.event_observers: list[Callable[[m.AdaptationEvent], None]] = []
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
+        self._interrupts = 0
 
     def request_stop(self, *_: Any) -> None:
         self.loop.request_stop()
 
+    # ---- what this agent tells the world -----------------------------------------------
     def _on_transition(self, t: Transition) -> None:
         p = self.supervisor.procs.get(t.node)
         msg = m.NodeState(
@@ -98,85 +120,186 @@ class HostAgent:
             active=p.spec.active if p else True,
             restarts=t.restarts,
             reason=t.reason,
+            digest=m.spec_digest(p.spec) if p else "",
         )
-        if self._publisher is not None:
-            self._publisher.put(_EVT.encode(msg))
+        self._put(msg)
         for observe in self.observers:
             observe(msg)
 
+    def _on_notice(self, n: Notice) -> None:
+        self.event(n.kind, n.message, level="warning", nodes=n.nodes)
+
+    def event(
+        self, kind: str, message: str, *, level: m.Level = "info", nodes: tuple[str, ...] = ()
+    ) -> None:
+        ev = m.AdaptationEvent(
+            stamp=time.time(),
+            kind=kind,
+            message=f"host {self.host}: {message}",
+            level=level,
+            source=f"host/{self.host}",
+            plan=list(nodes),
+        )
+        self._put(ev)
+        for observe in self.event_observers:
+            observe(ev)
+
+    def _put(self, msg: m.NodeState | m.AdaptationEvent) -> None:
+        if self._publisher is not None:
+            self._publisher.put(_EVT.encode(msg))
+
     # ---- Zenoh callbacks (enqueue only) -------------------------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
-        payload = query.payload
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        if too_large("host_ctl", len(raw)):
+            self._answer_now(query, "too_large", f"request of {len(raw)} bytes")
+            return
         try:
-            req: m.HostRequest | None = _REQ.decode(payload.to_bytes() if payload else b"")
-            err = None
+            req: m.HostRequest = _REQ.decode(raw)
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            req, err = None, f"malformed request: {e}"
-        item = _Request(query, req, err)
-        self.loop.post(lambda: self._serve(item))
+            self._answer_now(query, "malformed", f"malformed request: {e}")
+            return
+        self.counters.received += 1
+        if isinstance(req, m.Ping):  # answered here: a probe must not wait behind work
+            query.reply(query.key_expr, _REPLY.encode(m.Ok(result={"pid": os.getpid()})))
+            return
+        if not self.loop.post(lambda: self._serve(query, req)):
+            self._answer_now(query, "busy", "the host agent is overloaded; try again")
+
+    def _answer_now(self, query: zenoh.Query, code: str, message: str) -> None:
+        self.counters.dropped += 1
+        self._refusals(f"dropped request ({code})", message)
+        query.reply(query.key_expr, _REPLY.encode(m.Err(message=message, code=code)))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         parsed = self.keys.parse_alive(str(sample.key_expr))
-        if parsed is None or parsed[0] != self.host:
+        if parsed is None or parsed[0] != self.host or sample.kind != zenoh.SampleKind.PUT:
+            return  # a token's disappearance is not evidence about the process
+        self.loop.post(lambda: self.supervisor.on_ready(parsed[1], self.clock()))
+
+    # ---- probes ----------------------------------------------------------------------
+    def _probe_later(self, name: str, pid: int, timeout: float) -> None:
+        """A direct probe: a stopped process fails at once, otherwise a Ping query."""
+        if process_state(pid) in ("T", "t", ""):
+            self.loop.post(lambda: self.supervisor.on_probe(name, pid, False, self.clock()))
             return
-        alive = sample.kind == zenoh.SampleKind.PUT
-        self.loop.post(lambda: self.supervisor.on_alive(parsed[1], alive, self.clock()))
+        if self.session is None:
+            return
+        answered: list[bool] = []
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                answered.append(True)
+
+        def on_done() -> None:
+            ok = bool(answered)
+            self.loop.post(lambda: self.supervisor.on_probe(name, pid, ok, self.clock()))
+
+        self.session.get(
+            self.keys.node_ctl(name),
+            zenoh.handlers.Callback(on_reply, on_done),
+            payload=_ANY.encode(m.Ping()),
+            timeout=timeout,
+        )
 
     # ---- requests (main thread) ---------------------------------------------------------
-    def _serve(self, item: _Request) -> None:
-        if item.request is None:
-            self.dropped += 1
-            reply: m.Reply = m.Err(message=item.error or "malformed", code="malformed")
-        else:
-            try:
-                reply = self.handle(item.request)
-            except Exception as e:  # a bad request must never take the agent down
-                reply = m.Err(message=f"{type(e).__name__}: {e}", code="error")
-        if item.query is not None:
-            item.query.reply(item.query.key_expr, _REPLY.encode(reply))
-            item.query.drop()
-            item.query = None
+    def _serve(self, query: zenoh.Query, request: m.HostRequest) -> None:
+        try:
+            reply = self.handle(request)
+        except Exception as e:  # a bad request must never take the agent down
+            reply = m.Err(message=f"{type(e).__name__}: {e}", code="error")
+        query.reply(query.key_expr, _REPLY.encode(reply))
+
+    def _refuse(self, code: str, message: str) -> m.Err:
+        self.counters.rejected += 1
+        self._refusals(f"refused ({code})", message)
+        return m.Err(message=message, code=code)
+
+    def _admit(self, fence: m.Fence | None) -> bool:
+        if fence is None:
+            return True
+        term = (fence.epoch, fence.leader)
+        if not newer(term, self.fence):
+            return False
+        self.fence = term
+        return True
 
     def handle(self, req: m.HostRequest) -> m.Reply:
-        now = self.clock()
-        sup = self.supervisor
+        fence = getattr(req, "fence", None)
+        if not isinstance(req, m.Claim) and not self._admit(fence):
+            return self._refuse(
+                "stale_fence",
+                f"{req.__struct_config__.tag} from leader {fence.leader} (epoch {fence.epoch}) "  # type: ignore[union-attr]
+                f"refused: leader {self.fence[1]} (epoch {self.fence[0]}) has acted since",  # type: ignore[index]
+            )
         match req:
             case m.StartNode(spec=spec):
-                impl = implementation_id(spec)
-                if self.allowed is not None and impl not in self.allowed:
-                    return m.Err(message=f"implementation {impl!r} is not declared", code="denied")
-                if spec.name in sup.procs:
-                    p = sup.procs[spec.name]
-                    if p.state.value in ("STARTING", "RUNNING", "STOPPING"):
-                        return m.Err(message=f"node {spec.name} is {p.state}", code="busy")
-                    sup.remove(spec.name)
-                sup.add(spec, self.local)
-                sup.start(spec.name, now)
-                p = sup.procs[spec.name]
-                return m.Ok(result={"pid": p.pid, "state": p.state.value})
+                return self._start(spec)
             case m.StopNode(node=name):
-                if name not in sup.procs:
-                    return m.Err(message=f"no node {name!r} on host {self.host}", code="unknown")
-                sup.stop(name, now)
-                return m.Ok(result={"state": sup.state(name).value})
+                return self._stop(name)
             case m.UpdateSpec(specs=specs):
-                unknown = [s.name for s in specs if s.name not in sup.procs]
                 for spec in specs:
-                    if spec.name in sup.procs:
-                        sup.replace_spec(spec.name, spec)
-                if unknown:
-                    names = ", ".join(unknown)
-                    return m.Err(message=f"no node(s) {names} on {self.host}", code="unknown")
+                    if spec.name in self.supervisor.procs:
+                        self.supervisor.replace_spec(spec.name, self._fenced(spec))
                 return m.Ok()
             case m.SignalNode(node=name, signal=sig):
-                p = sup.procs.get(name)
+                p = self.supervisor.procs.get(name)
                 if p is None or p.pid is None:
                     return m.Err(message=f"no running node {name!r}", code="unknown")
+                if sig not in INJECTABLE:
+                    return self._refuse("denied", f"signal {sig} is not a fault to inject")
                 self.local.signal(p.pid, sig)
                 return m.Ok(result={"pid": p.pid})
             case m.ListNodes():
                 return m.Ok(result=[msgspec.to_builtins(s) for s in self.node_states()])
+            case m.Stats():
+                return m.Ok(result=self.stats())
+            case m.Claim(fence=claim):
+                accepted = self._admit(claim)
+                return m.Ok(result={"accepted": accepted, "fence": list(self.fence or ())})
         return m.Err(message=f"unsupported request {type(req).__name__}", code="unsupported")
+
+    def _fenced(self, spec: m.NodeSpec) -> m.NodeSpec:
+        """The spec with this agent's newest fence (the node refuses older leaders too)."""
+        if self.fence is None:
+            return spec
+        return msgspec.structs.replace(
+            spec, fence=m.Fence(epoch=self.fence[0], leader=self.fence[1])
+        )
+
+    def _start(self, spec: m.NodeSpec) -> m.Reply:
+        try:
+            check_chunk(spec.name, "node name")
+        except ValueError as e:
+            return self._refuse("denied", str(e))
+        impl = implementation_id(spec)
+        if self.allowed is not None and impl not in self.allowed:
+            return self._refuse("denied", f"implementation {impl!r} is not declared")
+        sup, now = self.supervisor, self.clock()
+        spec = self._fenced(spec)
+        p = sup.procs.get(spec.name)
+        if p is not None and p.state in (*LIVE, State.BACKOFF):
+            same = m.spec_digest(p.spec) == m.spec_digest(spec)
+            if p.state == State.STOPPING:
+                return m.Err(message=f"node {spec.name} is stopping", code="busy")
+            sup.replace_spec(spec.name, spec)
+            return m.Ok(
+                result={"pid": p.pid, "state": p.state.value, "already": True, "same": same}
+            )
+        if p is not None:
+            sup.replace_spec(spec.name, spec)
+        else:
+            sup.add(spec, self.local)
+        sup.start(spec.name, now)
+        p = sup.procs[spec.name]
+        return m.Ok(result={"pid": p.pid, "state": p.state.value})
+
+    def _stop(self, name: str) -> m.Reply:
+        p = self.supervisor.procs.get(name)
+        if p is None or p.state in (State.STOPPED, State.EXITED):
+            return m.Ok(result={"state": p.state.value if p else "STOPPED", "already": True})
+        self.supervisor.stop(name, self.clock())
+        return m.Ok(result={"state": p.state.value})
 
     def node_states(self) -> list[m.NodeState]:
         now = time.time()
@@ -190,18 +313,62 @@ class HostAgent:
                 implementation=implementation_id(p.spec),
                 active=p.spec.active,
                 restarts=p.restarts,
+                digest=m.spec_digest(p.spec),
             )
             for name, p in self.supervisor.procs.items()
         ]
 
-    # ---- main loop ---------------------------------------------------------------------
+    def stats(self) -> m.ProcessStats:
+        c = self.counters
+        c.extra.update(
+            refused_busy=self.loop.refused,
+            fork_server_restarts=max(0, self.local.zygote_starts - 1),
+            nodes=len(self.supervisor.procs),
+        )
+        if self.fence is not None:
+            c.extra["fence_epoch"] = self.fence[0]
+        return c.stats(self.host, "host", os.getpid())
+
+    # ---- the loop ----------------------------------------------------------------------
+    def _reap(self) -> None:
+        """Feed the supervisor every exit the OS reported (runs on each wake-up)."""
+        now = self.clock()
+        for pid, status in self.local.reap():
+            self.supervisor.on_exit(pid, status, now)
+        while self.local.zygote_exits:
+            status = self.local.zygote_exits.pop(0)
+            self.event(
+                "fork_server",
+                f"the fork server exited (status {status}); its nodes run on, a new one "
+                "starts with the next node",
+                level="warning",
+            )
+
+    def _tick(self, now: float) -> None:
+        self._reap()
+        self.supervisor.tick(now, self.local.beats())
+        for name, p in list(self.supervisor.procs.items()):
+            if p.state == State.STOPPED and not p.want_running:
+                self.local.forget(name)
+
+    def _on_signal(self, signum: int) -> None:
+        """A second Ctrl-C (or SIGTERM) during the shutdown kills what is left at once."""
+        self._interrupts += 1
+        if self._interrupts >= 2:
+            for pid in list(self.local.running()):
+                self.local.signal(pid, signal.SIGKILL)
+
     def run(self, *, install_signals: bool = True, on_ready: Callable[[], None] | None = None):
         if install_signals:
-            self.loop.install_signals()
+            self.loop.install_signals(on_signal=self._on_signal)
+            self.loop.wake_on_sigchld()
+            self.local.reap_orphans = True
         self.session = session = open_session(self.session_bus)
         try:
             self._publisher = session.declare_publisher(
-                self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
+                self.keys.events,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.INTERACTIVE_HIGH,
             )
             # Keep every declared entity referenced: a dropped one is undeclared.
             self._entities = [
@@ -218,11 +385,11 @@ class HostAgent:
         finally:
             self._publisher = None
             self.local.kill_all()
+            for entity in self._entities:
+                entity.undeclare()
+            self._entities = []
             session.close()
-
-    def _tick(self, now: float) -> None:
-        self.supervisor.tick(now)
-        self.local.forget_exited(keep={p.pid for p in self.supervisor.procs.values() if p.pid})
+            self.session = None
 
     def _shutdown(self) -> None:
         """Stop every node with the escalation policy; wait until all have exited."""

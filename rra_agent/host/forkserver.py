@@ -3,25 +3,35 @@
 Starting ``python -m rra_agent.node`` costs ~70 ms of CPU before the node does anything
 (interpreter, msgspec, zenoh, the node's own modules); a hundred nodes on two cores are
 several seconds. The host agent instead keeps one *zygote* child that imports all of that
-once (importing zenoh starts no thread, so forking is safe; no session is ever opened in
-the zygote) and forks a ready interpreter per node: the child redirects its output to the
-node's log, takes its environment, and runs `rra_agent.node.run_node`.
+once (importing zenoh starts no thread, so forking is safe; no session is ever opened in the
+zygote) and forks a ready interpreter per node.
+
+The nodes are not the zygote's children but the host agent's: the zygote forks an
+intermediate process that forks the node and exits at once, so the node is re-parented to
+the host agent, which is a *child subreaper* (``PR_SET_CHILD_SUBREAPER``). Only then does
+the node ask to die with its parent (``PR_SET_PDEATHSIG``), i.e. with the host agent. So:
+
+- the host agent reaps every node itself and learns of an exit at once (SIGCHLD);
+- the zygote is a helper, nothing more: if it dies (or is killed), the nodes go on, the
+  host agent starts a new zygote on the next spawn;
+- nothing outlives the host agent (the zygote dies with it too).
+
+External-command nodes are started the same way (the node process ``exec``s the command),
+so every node has one parent, one way to be reaped and the same parent-death signal.
 
 Protocol on the zygote's stdin/stdout, one JSON object per line:
 
-- host -> zygote: ``{"spec": <NodeSpec>, "env": {...}, "log": "<path>"}``;
-- zygote -> host: ``{"started": pid}`` in answer, and ``{"exit": pid, "status": s}`` whenever
-  a child ends (``s`` as `subprocess.Popen.returncode`: negative = killed by signal -s).
+- host -> zygote: ``{"id": n, "spec": <NodeSpec>, "env": {...}, "log": "<path>",
+  "argv": [...] | null, "cwd": "<dir>" | null}`` (``argv`` null: a Python node);
+- zygote -> host: ``{"id": n, "started": pid}`` (written by the intermediate process).
 
-The zygote is the nodes' parent: it reaps them and reports their exit. Each child gets
-``PR_SET_PDEATHSIG = SIGKILL`` (it dies with the zygote), and the zygote gets it too (it dies
-with the host agent), so nothing outlives the host agent. The zygote exits when its stdin
-closes.
+The zygote exits when its stdin closes.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import importlib
 import json
 import os
@@ -29,16 +39,44 @@ import select
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterable
-from typing import IO, Any
+from typing import Any
 
 import msgspec
 
 from rra_agent.bus.messages import NodeSpec
-from rra_agent.host.processes import die_with_parent
 
 #: What every Python node needs: imported once, in the zygote.
 PRELOAD = ("zenoh", "msgspec", "rra_agent.bus.runtime", "rra_agent.node")
+_PR_SET_PDEATHSIG = 1
+_PR_SET_CHILD_SUBREAPER = 36
+#: How long a node waits to be adopted by the host agent before it gives up.
+_ADOPTION_TIMEOUT = 5.0
+#: Exit status of a node that could not be set up (never ran its code).
+EXIT_SETUP = 71
+
+
+def _prctl(option: int, value: int) -> bool:
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(option, value, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def die_with_parent() -> None:
+    """Ask for SIGKILL when the parent dies (Linux; call in the child after fork)."""
+    _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
+def become_subreaper() -> bool:
+    """Make this process adopt its orphaned descendants (the nodes of its zygote)."""
+    return _prctl(_PR_SET_CHILD_SUBREAPER, 1)
+
+
+class ForkServerError(OSError):
+    """The zygote died, or did not answer in time."""
 
 
 # ---- the zygote side ------------------------------------------------------------------------
@@ -48,28 +86,68 @@ def _preload(modules: Iterable[str]) -> None:
             importlib.import_module(name)
 
 
-def _child(request: dict[str, Any], fds: list[int]) -> None:
-    """In the forked child: become the node. Never returns."""
-    code = 70
+def serve(host_pid: int, preload: Iterable[str] = ()) -> int:
+    """The zygote's main loop (``python -m rra_agent.host.forkserver HOST_PID [MODULE ...]``)."""
+    _preload((*PRELOAD, *preload))
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the host agent decides when we stop
+    stdin = sys.stdin.buffer.fileno()
+    out = sys.stdout.buffer.fileno()
+    buffer = b""
+    while True:
+        select.select([stdin], [], [])
+        chunk = os.read(stdin, 65536)
+        if not chunk:
+            return 0
+        buffer += chunk
+        *lines, buffer = buffer.split(b"\n")
+        for line in lines:
+            if line.strip():
+                _fork(json.loads(line), out, [stdin, out], host_pid)
+
+
+def _fork(request: dict[str, Any], out: int, fds: list[int], host_pid: int) -> None:
+    """Fork the intermediate process, which forks the node, reports it and exits."""
+    pid = os.fork()
+    if pid == 0:
+        status = 0
+        try:
+            node = os.fork()
+            if node == 0:
+                _node(request, fds, host_pid)
+            reply = {"id": request.get("id"), "started": node}
+            os.write(out, json.dumps(reply).encode() + b"\n")
+        except BaseException:
+            status = 1
+        finally:
+            os._exit(status)
+    os.waitpid(pid, 0)
+
+
+def _node(request: dict[str, Any], fds: list[int], host_pid: int) -> None:
+    """In the node process: wait for the adoption, then become the node. Never returns."""
+    code = EXIT_SETUP
     try:
-        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-        signal.set_wakeup_fd(-1)
+        deadline = time.monotonic() + _ADOPTION_TIMEOUT
+        while os.getppid() != host_pid:  # the intermediate exits: we move to the host agent
+            if time.monotonic() > deadline:
+                os._exit(EXIT_SETUP)
+            time.sleep(0.0002)
         die_with_parent()
-        log = os.open(request["log"], os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-        null = os.open(os.devnull, os.O_RDONLY)
-        os.dup2(null, 0)
-        os.dup2(log, 1)
-        os.dup2(log, 2)
-        for fd in {*fds, log, null} - {0, 1, 2}:  # the zygote's pipes, not our new stdio
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        os.environ.update(request.get("env", {}))
-        sys.stdout = os.fdopen(1, "w", buffering=1)
-        sys.stderr = os.fdopen(2, "w", buffering=1)
+        if os.getppid() != host_pid:  # the host agent died in between
+            os._exit(EXIT_SETUP)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        _redirect(request["log"], fds)
+        env = request.get("env", {})
+        if request.get("cwd"):
+            os.chdir(request["cwd"])
+        argv = request.get("argv")
+        if argv:
+            os.execvpe(argv[0], argv, {**os.environ, **env})
+        os.environ.update(env)
         from rra_agent.node import run_node
 
         code = run_node(msgspec.convert(request["spec"], NodeSpec))
-    except BaseException as e:  # the child must never fall back into the zygote's loop
+    except BaseException as e:  # the node must never fall back into the zygote's loop
         with contextlib.suppress(Exception):
             print(f"rra node (forked): {type(e).__name__}: {e}", file=sys.stderr, flush=True)
     finally:
@@ -79,65 +157,30 @@ def _child(request: dict[str, Any], fds: list[int]) -> None:
         os._exit(code)
 
 
-def _status(raw: int) -> int:
-    return -os.WTERMSIG(raw) if os.WIFSIGNALED(raw) else os.WEXITSTATUS(raw)
-
-
-def serve(preload: Iterable[str] = ()) -> int:
-    """The zygote's main loop (``python -m rra_agent.host.forkserver [MODULE ...]``)."""
-    _preload((*PRELOAD, *preload))
-    rsig, wsig = os.pipe()
-    os.set_blocking(wsig, False)
-    signal.set_wakeup_fd(wsig)
-    signal.signal(signal.SIGCHLD, lambda *_: None)  # wake the select below
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the host agent decides when we stop
-    stdin, out = sys.stdin.buffer, sys.stdout
-    buffer = b""
-    while True:
-        ready, _, _ = select.select([stdin, rsig], [], [])
-        if rsig in ready:
-            os.read(rsig, 512)
-        _reap(out)
-        if stdin in ready:
-            chunk = os.read(stdin.fileno(), 65536)
-            if not chunk:
-                return 0
-            buffer += chunk
-            *lines, buffer = buffer.split(b"\n")
-            for line in lines:
-                if line.strip():
-                    _fork(json.loads(line), out, [stdin.fileno(), out.fileno(), rsig, wsig])
-
-
-def _fork(request: dict[str, Any], out: IO[str], fds: list[int]) -> None:
-    pid = os.fork()
-    if pid == 0:
-        _child(request, fds)
-    out.write(json.dumps({"started": pid}) + "\n")
-    out.flush()
-
-
-def _reap(out: IO[str]) -> None:
-    while True:
-        try:
-            pid, raw = os.waitpid(-1, os.WNOHANG)
-        except ChildProcessError:
-            return
-        if pid == 0:
-            return
-        out.write(json.dumps({"exit": pid, "status": _status(raw)}) + "\n")
-        out.flush()
+def _redirect(log_path: str, fds: list[int]) -> None:
+    log = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.dup2(log, 1)
+    os.dup2(log, 2)
+    for fd in {*fds, log, null} - {0, 1, 2}:  # the zygote's pipes, not our new stdio
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    sys.stdout = os.fdopen(1, "w", buffering=1)
+    sys.stderr = os.fdopen(2, "w", buffering=1)
 
 
 # ---- the host agent side ---------------------------------------------------------------------
 class ForkServer:
-    """Handle on a zygote, used by `LocalHost` from the host agent's main thread."""
+    """Handle on a zygote, used by `LocalHost` from the host agent's main thread. The host
+    agent reaps the zygote (its child) itself and calls `exited` when it ends."""
 
-    def __init__(self, preload: Iterable[str] = ()) -> None:
+    def __init__(self, preload: Iterable[str] = (), pass_fds: Iterable[int] = ()) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rra_agent.host.forkserver", *preload],
+            [sys.executable, "-m", "rra_agent.host.forkserver", str(os.getpid()), *preload],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
+            pass_fds=tuple(pass_fds),
             preexec_fn=die_with_parent if sys.platform == "linux" else None,
         )
         assert self.proc.stdin is not None and self.proc.stdout is not None
@@ -145,56 +188,94 @@ class ForkServer:
         self._out = self.proc.stdout
         os.set_blocking(self._out.fileno(), False)
         self._buffer = b""
-        #: pid -> exit status (None while running) of every node forked.
-        self.children: dict[int, int | None] = {}
+        self._next_id = 0
+        self.dead = False
 
-    def spawn(self, spec: NodeSpec, env: dict[str, str], log: str) -> int:
-        request = {"spec": msgspec.to_builtins(spec), "env": env, "log": log}
-        self._in.write(json.dumps(request).encode() + b"\n")
-        self._in.flush()
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def spawn(
+        self,
+        spec: NodeSpec,
+        env: dict[str, str],
+        log: str,
+        *,
+        argv: list[str] | None = None,
+        cwd: str | None = None,
+        timeout: float = 5.0,
+    ) -> int:
+        """Start a node; its pid. Raises `ForkServerError` if the zygote is gone or does
+        not answer within ``timeout`` (then it is killed: a new one starts next time)."""
+        if self.dead:
+            raise ForkServerError("the fork server exited")
+        self._next_id += 1
+        request = {
+            "id": self._next_id,
+            "spec": msgspec.to_builtins(spec),
+            "env": env,
+            "log": log,
+            "argv": argv,
+            "cwd": cwd,
+        }
+        try:
+            self._in.write(json.dumps(request).encode() + b"\n")
+            self._in.flush()
+        except (BrokenPipeError, ValueError) as e:
+            self.dead = True
+            raise ForkServerError(f"the fork server exited ({e})") from None
+        deadline = time.monotonic() + timeout
         while True:
-            for msg in self._read(block=True):
-                if "started" in msg:
-                    pid = int(msg["started"])
-                    self.children.setdefault(pid, None)
-                    return pid
+            for msg in self._read(deadline):
+                if msg.get("id") == self._next_id and "started" in msg:
+                    return int(msg["started"])
 
-    def poll(self, pid: int) -> int | None:
-        for _ in self._read(block=False):
-            pass
-        return self.children.get(pid)
-
-    def _read(self, *, block: bool) -> list[dict[str, Any]]:
-        """Messages available now (with ``block``: wait for at least one line)."""
+    def _read(self, deadline: float) -> list[dict[str, Any]]:
+        """The complete lines available, waiting until ``deadline`` for at least one."""
         fd = self._out.fileno()
-        while True:
+        while b"\n" not in self._buffer:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self.kill()
+                raise ForkServerError("the fork server did not answer in time (killed)")
+            select.select([fd], [], [], left)
             try:
                 chunk = os.read(fd, 65536)
             except BlockingIOError:
-                chunk = None
-            if chunk == b"":
-                raise OSError("the fork server exited")
-            if chunk:
-                self._buffer += chunk
-            if b"\n" in self._buffer or not block:
-                break
-            select.select([fd], [], [], 5.0)
+                continue
+            if not chunk:
+                self.dead = True
+                raise ForkServerError("the fork server exited")
+            self._buffer += chunk
         *lines, self._buffer = self._buffer.split(b"\n")
-        msgs = [json.loads(line) for line in lines if line.strip()]
-        for msg in msgs:
-            if "exit" in msg:
-                self.children[int(msg["exit"])] = int(msg["status"])
-        return msgs
+        return [json.loads(line) for line in lines if line.strip()]
+
+    def exited(self, status: int) -> None:
+        """The host agent reaped the zygote."""
+        self.dead = True
+        self.proc.returncode = status
+
+    def kill(self) -> None:
+        self.dead = True
+        with contextlib.suppress(ProcessLookupError):
+            self.proc.kill()
 
     def close(self, timeout: float = 5.0) -> None:
-        with contextlib.suppress(OSError):
+        """Close its stdin (it exits) and reap it if the host agent has not."""
+        with contextlib.suppress(OSError, ValueError):
             self._in.close()
+        with contextlib.suppress(OSError, ValueError):
+            self._out.close()
+        if self.proc.returncode is not None:
+            return
         try:
             self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
+        except ChildProcessError:
+            pass
 
 
 if __name__ == "__main__":
-    sys.exit(serve(sys.argv[1:]))
+    sys.exit(serve(int(sys.argv[1]), sys.argv[2:]))

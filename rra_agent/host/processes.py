@@ -1,50 +1,46 @@
-"""Start, signal and reap node processes on this machine (the host agent's hands).
+"""The host agent's process table: start, signal, reap and read the heartbeats of nodes.
 
-A node is started as ``python -m rra_agent.node`` (Python implementations) or as its own
-command (external implementations), with its spec in ``RRA_NODE_SPEC`` and the bus
-configuration in ``RRA_BUS_CONFIG``; stdout and stderr go to ``<log_dir>/<node>.log``.
+A node is started from the fork server (`rra_agent.host.forkserver`): a Python node runs
+`rra_agent.node.run_node` in a pre-imported interpreter, an external command is ``exec``ed.
+Either way the node becomes a direct child of this process (a child subreaper), so its exit
+is *reaped here*: `reap` returns every exit since the last call, and the host agent calls it
+whenever SIGCHLD wakes its loop, so a death is known at once, never from a lease. Each node
+gets its spec in ``RRA_NODE_SPEC``, the bus configuration in ``RRA_BUS_CONFIG``, a heartbeat
+slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), and its output in
+``<log_dir>/<node>.log``.
 
-Python nodes are forked from a pre-imported interpreter (`rra_agent.host.forkserver`),
-which saves each node ~70 ms of CPU at start.
+If the fork server dies, the nodes go on: `reap` reports it (``zygote_exits``) and the next
+spawn starts a new one. ``RRA_FORK_SERVER=0`` starts every node as its own command instead
+(``python -m rra_agent.node``), also a direct child.
 
-No orphans: on Linux every child gets ``PR_SET_PDEATHSIG = SIGKILL``, so it dies with the
-process that started it even when that one is killed with SIGKILL. Children are spawned from
-the thread that owns this object (the death signal is tied to the spawning thread).
+No orphans: every node asks for SIGKILL when this process dies (``PR_SET_PDEATHSIG``).
+Children are spawned from the thread that owns this object (the death signal is tied to the
+spawning thread): the host agent's main thread.
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import msgspec
 
 from rra_agent.bus.config import ENV_VAR as BUS_ENV
 from rra_agent.bus.config import BusConfig
+from rra_agent.bus.keys import check_chunk
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.host import heartbeat as hb
+from rra_agent.host.forkserver import ForkServer, ForkServerError, become_subreaper, die_with_parent
 from rra_agent.node import SPEC_ENV
 
-if TYPE_CHECKING:
-    from rra_agent.host.forkserver import ForkServer
-
-_PR_SET_PDEATHSIG = 1
-
-
-def die_with_parent() -> None:
-    """Ask for SIGKILL when the parent dies (Linux; call in the child after fork)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):
-        pass
+#: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
+Prober = Callable[[str, int, float], None]
 
 
 def node_command(spec: NodeSpec) -> list[str]:
@@ -53,13 +49,22 @@ def node_command(spec: NodeSpec) -> list[str]:
     return list(spec.implementation.command)
 
 
-class LocalHost:
-    """`ProcessHost` for this machine.
+def _status(raw: int) -> int:
+    """A wait status as `subprocess.Popen.returncode` (negative: killed by that signal)."""
+    return -os.WTERMSIG(raw) if os.WIFSIGNALED(raw) else os.WEXITSTATUS(raw)
 
-    Python nodes are forked from a pre-imported interpreter (`ForkServer`) unless
-    ``fork_server`` is False (or ``RRA_FORK_SERVER=0``); external commands are started with
-    ``Popen``. Both kinds are polled, signalled and reaped the same way.
-    """
+
+def process_state(pid: int) -> str:
+    """The kernel's state letter of a process (``R``, ``S``, ``T`` stopped...), '' if gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""
+
+
+class LocalHost:
+    """`ProcessHost` for this machine."""
 
     def __init__(
         self,
@@ -69,94 +74,154 @@ class LocalHost:
         *,
         fork_server: bool | None = None,
         preload: Iterable[str] = (),
+        reap_orphans: bool = False,
+        prober: Prober | None = None,
     ) -> None:
         self.name = name
         self.bus = bus
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.children: dict[int, subprocess.Popen[bytes]] = {}
+        #: Live node processes: pid -> node name.
         self.names: dict[int, str] = {}
+        self._popen: dict[int, subprocess.Popen[bytes]] = {}
         if fork_server is None:
             fork_server = os.environ.get("RRA_FORK_SERVER", "1") != "0"
         self._fork_server_wanted = fork_server
         self._preload = tuple(preload)
         self.zygote: ForkServer | None = None
+        #: Exit statuses of fork servers reaped since the host agent last looked.
+        self.zygote_exits: list[int] = []
+        self.zygote_starts = 0
+        #: Reap every child, not only ours (the host agent process: orphans of node
+        #: subprocesses are re-parented here and must not stay zombies).
+        self.reap_orphans = reap_orphans
+        self.heartbeats = hb.HeartbeatTable()
+        self.prober = prober
+        if fork_server and not become_subreaper():
+            self._fork_server_wanted = False  # nodes would not be our children: exec them
+
+    # ---- ProcessHost -------------------------------------------------------------------
+    def spawn(self, spec: NodeSpec) -> int:
+        check_chunk(spec.name, "node name")  # also a file name: no '/', no '..'
+        log_path = self.log_dir / f"{spec.name}.log"
+        env = self._env(spec)
+        external = not isinstance(spec.implementation, str)
+        if self._fork_server_wanted:
+            argv = node_command(spec) if external else None
+            cwd = spec.implementation.cwd if external else None  # type: ignore[union-attr]
+            pid = self._zygote().spawn(spec, env, str(log_path), argv=argv, cwd=cwd)
+        else:
+            pid = self._exec(spec, env, log_path)
+        self.names[pid] = spec.name
+        return pid
+
+    def signal(self, pid: int, sig: int) -> None:
+        if pid in self.names:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+
+    def probe(self, name: str, pid: int, timeout: float) -> None:
+        if self.prober is not None:
+            self.prober(name, pid, timeout)
+
+    # ---- the rest of the host agent's needs ---------------------------------------------
+    def reap(self) -> list[tuple[int, int]]:
+        """(pid, status) of every node that ended since the last call (SIGCHLD or tick)."""
+        out: list[tuple[int, int]] = []
+        if self.reap_orphans:
+            while True:
+                try:
+                    pid, raw = os.waitpid(-1, os.WNOHANG)
+                except ChildProcessError:
+                    break
+                if pid == 0:
+                    break
+                self._exited(pid, _status(raw), out)
+        else:
+            for pid in [*self.names, *([self.zygote.pid] if self.zygote else [])]:
+                try:
+                    done, raw = os.waitpid(pid, os.WNOHANG)
+                except ChildProcessError:
+                    continue
+                if done:
+                    self._exited(pid, _status(raw), out)
+        return out
+
+    def _exited(self, pid: int, status: int, out: list[tuple[int, int]]) -> None:
+        if self.zygote is not None and pid == self.zygote.pid:
+            self.zygote.exited(status)
+            self.zygote_exits.append(status)
+            self.zygote = None
+            return
+        name = self.names.pop(pid, None)
+        proc = self._popen.pop(pid, None)
+        if proc is not None:
+            proc.returncode = status
+        if name is not None:
+            out.append((pid, status))
+
+    def beats(self) -> dict[str, hb.Beat]:
+        return self.heartbeats.read_all()
+
+    def forget(self, name: str) -> None:
+        """A node no longer supervised: free its heartbeat slot."""
+        self.heartbeats.release(name)
+
+    def running(self) -> dict[int, str]:
+        return dict(self.names)
+
+    def kill_all(self, timeout: float = 2.0) -> None:
+        """Last resort at shutdown: SIGTERM everything left, then SIGKILL, and reap."""
+        alive = list(self.names)
+        for pid in alive:
+            self.signal(pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        while self.names and time.monotonic() < deadline:
+            self.reap()
+            time.sleep(0.01)
+        for pid in list(self.names):
+            self.signal(pid, signal.SIGKILL)
+        while self.names and time.monotonic() < deadline + 2.0:
+            self.reap()
+            time.sleep(0.01)
+        if self.zygote is not None:
+            self.zygote.close()
+            self.zygote = None
+        self.heartbeats.close()
+
+    # ---- internals ---------------------------------------------------------------------
+    def _zygote(self) -> ForkServer:
+        if self.zygote is None or self.zygote.dead:
+            self.zygote = ForkServer(self._preload, pass_fds=[self.heartbeats.fd])
+            self.zygote_starts += 1
+        return self.zygote
 
     def _env(self, spec: NodeSpec) -> dict[str, str]:
-        env = {SPEC_ENV: msgspec.json.encode(spec).decode(), BUS_ENV: self.bus.to_env()}
-        env.setdefault("PYTHONUNBUFFERED", "1")
+        env = {
+            SPEC_ENV: msgspec.json.encode(spec).decode(),
+            BUS_ENV: self.bus.to_env(),
+            hb.ENV: self.heartbeats.allocate(spec.name),
+            "PYTHONUNBUFFERED": "1",
+        }
         if not isinstance(spec.implementation, str):
             env.update(spec.implementation.env)
         return env
 
-    def spawn(self, spec: NodeSpec) -> int:
-        log_path = self.log_dir / f"{spec.name}.log"
-        if isinstance(spec.implementation, str) and self._fork_server_wanted:
-            if self.zygote is None:
-                from rra_agent.host.forkserver import ForkServer
-
-                self.zygote = ForkServer(self._preload)
-            pid = self.zygote.spawn(spec, self._env(spec), str(log_path))
-        else:
-            pid = self._popen(spec, log_path)
-        self.names[pid] = spec.name
-        return pid
-
-    def _popen(self, spec: NodeSpec, log_path: Path) -> int:
-        env = {**os.environ, **self._env(spec)}
+    def _exec(self, spec: NodeSpec, env: dict[str, str], log_path: Path) -> int:
         cwd = None if isinstance(spec.implementation, str) else spec.implementation.cwd
-        log = log_path.open("ab")
-        try:
+        with log_path.open("ab") as log:
             proc = subprocess.Popen(
                 node_command(spec),
-                env=env,
+                env={**os.environ, **env},
                 cwd=cwd,
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
+                pass_fds=[self.heartbeats.fd],
                 preexec_fn=die_with_parent if sys.platform == "linux" else None,
             )
-        finally:
-            log.close()
-        self.children[proc.pid] = proc
+        self._popen[proc.pid] = proc
         return proc.pid
 
-    def signal(self, pid: int, sig: int) -> None:
-        if self.poll(pid) is None and pid in self.names:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, sig)
 
-    def poll(self, pid: int) -> int | None:
-        proc = self.children.get(pid)
-        if proc is not None:
-            return proc.poll()
-        if self.zygote is not None and pid in self.zygote.children:
-            return self.zygote.poll(pid)
-        return None
-
-    def forget_exited(self, keep: set[int]) -> None:
-        """Drop the handles of exited children nobody asks about any more (``keep``)."""
-        for pid in list(self.names):
-            if pid not in keep and self.poll(pid) is not None:
-                self.children.pop(pid, None)
-                if self.zygote is not None:
-                    self.zygote.children.pop(pid, None)
-                del self.names[pid]
-
-    def running(self) -> dict[int, str]:
-        return {pid: n for pid, n in self.names.items() if self.poll(pid) is None}
-
-    def kill_all(self, timeout: float = 2.0) -> None:
-        """Last resort at shutdown: SIGTERM everything left, then SIGKILL, and reap."""
-        alive = list(self.running())
-        for pid in alive:
-            self.signal(pid, signal.SIGTERM)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and any(self.poll(p) is None for p in alive):
-            time.sleep(0.01)
-        for pid in alive:
-            self.signal(pid, signal.SIGKILL)
-        for proc in self.children.values():
-            proc.wait()
-        if self.zygote is not None:
-            self.zygote.close()
+__all__ = ["ForkServerError", "LocalHost", "die_with_parent", "node_command", "process_state"]

@@ -1,62 +1,66 @@
 """Process supervision: one explicit state machine per node, driven by ``tick(now)``.
 
-States (as in Supervisor): STOPPED, STARTING, RUNNING, BACKOFF, STOPPING, EXITED, FATAL.
+States (as in Supervisor, plus one for a suspected freeze)::
 
-::
-
-    STOPPED --start--> STARTING --ready (liveliness token)--> RUNNING
+    STOPPED --start--> STARTING --ready--> RUNNING
     STARTING --exit | start timeout--> BACKOFF --backoff elapsed--> STARTING
-    RUNNING --exit | token lost (frozen: killed first)--> BACKOFF (restart policy) | EXITED
-    BACKOFF | STARTING | RUNNING --too many restarts | config error (exit 2)--> FATAL
+    RUNNING --heartbeat older than its deadline--> UNRESPONSIVE (a direct probe is sent)
+    UNRESPONSIVE --probe answered | heartbeat again--> RUNNING
+    UNRESPONSIVE --no answer within probe_timeout--> killed --> BACKOFF
+    RUNNING | UNRESPONSIVE --exit--> BACKOFF (restart policy) | EXITED
+    any failure beyond the restart budget (max_restarts in restart_window) --> FATAL
+    FATAL --cool-down elapsed--> STARTING (the budget starts afresh)
     any live state --stop--> STOPPING: SIGINT, then SIGTERM, then SIGKILL --exit--> STOPPED
 
-`_set` is the one place that changes a state; it emits a `Transition` to the listener. The
-supervisor never reads a clock or sleeps: callers pass ``now`` (tests drive it with fake time,
-the resolution engine with ``time.monotonic()``). Processes are started and signalled through
-a `ProcessHost` (the local host, or a remote host agent), never directly.
+How failures are told from a slow observer (docs/architecture.md, failure model):
+
+- *Death* is an observation from the OS (`on_exit`, fed by the host agent's reaping of its
+  children), never inferred from a lease or a liveliness token.
+- *Freeze* needs two pieces of evidence: the node's heartbeat (written by the node into
+  memory shared with its host agent) is older than its ``heartbeat_timeout``, and the node
+  then fails a direct probe within ``probe_timeout``.
+- A heartbeat loss seen for many nodes at once is *common-mode* (the machine or this
+  observer stalled): it is reported and re-checked, never answered by killing anything. A
+  tick that comes late (this observer itself stalled) first gives every node a grace period.
+
+`_set` is the one place that changes a state; it emits a `Transition` to the listener.
+The supervisor never reads a clock, sleeps or does I/O: callers pass ``now`` and the
+heartbeats they read, and processes are started, signalled and probed through a
+`ProcessHost`.
 """
 
 from __future__ import annotations
 
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Literal, Protocol
+from typing import Protocol
 
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.host.heartbeat import Beat
+from rra_agent.models.system import Supervision
 
-EXIT_CONFIG = 2  # rra_agent.node's exit status for an unusable spec: never restarted
+EXIT_CONFIG = 2  # rra_agent.node's exit status for an unusable spec or implementation
+#: A tick this much later than expected means the observer itself stalled.
+STALL = 0.5
+#: At least this many stale nodes, and half of the watched ones, are common-mode.
+COMMON_MODE_MIN = 2
 
 
 class State(StrEnum):
     STOPPED = "STOPPED"
     STARTING = "STARTING"
     RUNNING = "RUNNING"
+    UNRESPONSIVE = "UNRESPONSIVE"
     BACKOFF = "BACKOFF"
     STOPPING = "STOPPING"
     EXITED = "EXITED"
     FATAL = "FATAL"
 
 
-LIVE = frozenset({State.STARTING, State.RUNNING, State.STOPPING})
-
-
-@dataclass(frozen=True)
-class RestartPolicy:
-    #: ``on-failure``: restart after a non-zero exit or a lost token; ``always``: also after 0.
-    mode: Literal["always", "on-failure", "never"] = "on-failure"
-    max_restarts: int = 5
-    backoff_initial: float = 0.1
-    backoff_factor: float = 2.0
-    backoff_max: float = 5.0
-    #: A run this long without failure resets the restart count.
-    reset_after: float = 30.0
-    #: Time allowed from spawn to the liveliness token (the ready handshake).
-    start_timeout: float = 10.0
-
-    def backoff(self, restarts: int) -> float:
-        return min(self.backoff_max, self.backoff_initial * self.backoff_factor ** max(0, restarts))
+#: States in which the node's process exists.
+LIVE = frozenset({State.STARTING, State.RUNNING, State.UNRESPONSIVE, State.STOPPING})
 
 
 @dataclass(frozen=True)
@@ -66,7 +70,7 @@ class StopPolicy:
 
 
 class ProcessHost(Protocol):
-    """Where node processes run: this machine or a host agent elsewhere."""
+    """Where node processes run, and how they are probed."""
 
     name: str
 
@@ -76,8 +80,9 @@ class ProcessHost(Protocol):
 
     def signal(self, pid: int, sig: int) -> None: ...
 
-    def poll(self, pid: int) -> int | None:
-        """Exit status if the process has ended (negative: killed by that signal), else None."""
+    def probe(self, name: str, pid: int, timeout: float) -> None:
+        """Ask the node directly whether it is alive; the answer comes back through
+        `Supervisor.on_probe` (later, from another thread's callback)."""
         ...
 
 
@@ -101,28 +106,52 @@ class Proc:
     host: ProcessHost
     state: State = State.STOPPED
     pid: int | None = None
-    restarts: int = 0
     since: float = 0.0
-    #: When the current wait ends: start timeout, backoff end, or stop escalation step.
+    #: When the current wait ends: start timeout, backoff end, probe deadline, stop
+    #: escalation step or the end of the FATAL cool-down.
     deadline: float | None = None
     escalation: list[int] = field(default_factory=list)
-    alive: bool = False
     exit_status: int | None = None
     want_running: bool = False
+    #: Times of the failures inside the restart window (the restart budget).
+    failures: list[float] = field(default_factory=list)
+    #: Restarts since the node was (re)started by request (reported).
+    restarts: int = 0
+    #: No freeze verdict before this time (after a start, a probe answered, a stall).
+    grace_until: float = 0.0
+    #: The last heartbeat seen (host monotonic time).
+    last_beat: float | None = None
+    #: Already given a second chance after a common-mode loss (reset by a fresh beat).
+    rechecked: bool = False
+
+    @property
+    def policy(self) -> Supervision:
+        return self.spec.supervision
+
+
+@dataclass
+class Notice:
+    """Something the supervisor saw that is not a state change (e.g. common-mode loss)."""
+
+    now: float
+    kind: str
+    message: str
+    nodes: tuple[str, ...] = ()
 
 
 class Supervisor:
     def __init__(
         self,
         *,
-        restart: RestartPolicy | None = None,
         stop: StopPolicy | None = None,
         listener: Callable[[Transition], None] | None = None,
+        notices: Callable[[Notice], None] | None = None,
     ) -> None:
-        self.restart = restart or RestartPolicy()
         self.stop_policy = stop or StopPolicy()
         self.listener = listener
+        self.notices = notices
         self.procs: dict[str, Proc] = {}
+        self._last_tick: float | None = None
 
     # ---- the one place a state changes ---------------------------------------------------
     def _set(self, p: Proc, state: State, now: float, reason: str) -> None:
@@ -143,6 +172,10 @@ class Supervisor:
                 )
             )
 
+    def _notice(self, now: float, kind: str, message: str, nodes: tuple[str, ...] = ()) -> None:
+        if self.notices is not None:
+            self.notices(Notice(now, kind, message, nodes))
+
     # ---- commands ----------------------------------------------------------------------
     def add(self, spec: NodeSpec, host: ProcessHost) -> Proc:
         if spec.name in self.procs:
@@ -151,28 +184,22 @@ class Supervisor:
         self.procs[spec.name] = p
         return p
 
-    def adopt(self, spec: NodeSpec, host: ProcessHost, pid: int, now: float) -> Proc:
-        """Supervise an already running node (e.g. after an engine restart)."""
-        p = self.add(spec, host)
-        p.pid, p.alive, p.want_running = pid, True, True
-        self._set(p, State.RUNNING, now, "adopted")
-        return p
-
     def start(self, name: str, now: float) -> None:
         p = self.procs[name]
         p.want_running = True
         if p.state in (State.STOPPED, State.EXITED, State.FATAL):
+            p.failures.clear()
             p.restarts = 0
             self._spawn(p, now, "start requested")
 
     def stop(self, name: str, now: float) -> None:
         p = self.procs[name]
         p.want_running = False
-        if p.state in (State.STARTING, State.RUNNING):
+        if p.state in (State.STARTING, State.RUNNING, State.UNRESPONSIVE):
             self._begin_stop(p, now, "stop requested")
-        elif p.state == State.BACKOFF:
+        elif p.state in (State.BACKOFF, State.FATAL):
             p.deadline = None
-            self._set(p, State.STOPPED, now, "stop requested during backoff")
+            self._set(p, State.STOPPED, now, f"stop requested in {p.state}")
 
     def remove(self, name: str) -> None:
         p = self.procs[name]
@@ -181,56 +208,140 @@ class Supervisor:
         del self.procs[name]
 
     def replace_spec(self, name: str, spec: NodeSpec) -> None:
-        """New spec (implementation, params, ports) used from the next spawn on."""
+        """New spec (implementation, params, ports, supervision) from the next spawn on."""
         self.procs[name].spec = spec
 
     # ---- observations ------------------------------------------------------------------
-    def on_alive(self, name: str, alive: bool, now: float) -> None:
-        """The node's liveliness token appeared (ready) or disappeared (gone or frozen)."""
-        p = self.procs.get(name)
-        if p is None:
-            return
-        p.alive = alive
-        if alive and p.state == State.STARTING:
-            p.deadline = None
-            self._set(p, State.RUNNING, now, "ready")
-        elif not alive and p.state == State.RUNNING:
-            status = p.host.poll(p.pid) if p.pid is not None else None
-            if status is not None:  # it died: report the exit, not the lost token
-                self._on_exit(p, status, now)
-                return
-            # The token went but the process is there: frozen or disconnected. Kill it;
-            # the restart policy decides what comes next.
-            self._kill(p, "liveliness lost")
-            self._failed(p, now, "liveliness lost (frozen or disconnected)")
+    def on_exit(self, pid: int, status: int, now: float) -> None:
+        """The OS reported that process ``pid`` ended (negative status: killed by -status)."""
+        p = self._by_pid(pid)
+        if p is not None:
+            self._on_exit(p, status, now)
 
-    def tick(self, now: float) -> None:
+    def on_ready(self, name: str, now: float) -> None:
+        """The node said it is ready (its liveliness token, or the ready flag of its
+        heartbeat)."""
+        p = self.procs.get(name)
+        if p is not None and p.state == State.STARTING:
+            p.deadline = None
+            p.grace_until = now + p.policy.heartbeat_timeout
+            self._set(p, State.RUNNING, now, "ready")
+
+    def on_probe(self, name: str, pid: int, ok: bool, now: float) -> None:
+        """The answer (or the failure) of a direct probe sent through `ProcessHost.probe`."""
+        p = self.procs.get(name)
+        if p is None or p.pid != pid or p.state != State.UNRESPONSIVE:
+            return
+        if ok:
+            p.deadline = None
+            p.grace_until = now + p.policy.heartbeat_timeout
+            self._set(p, State.RUNNING, now, "answered the probe (heartbeat late)")
+        else:
+            self._frozen(p, now, "no answer to the probe")
+
+    def tick(self, now: float, beats: Mapping[str, Beat] | None = None) -> None:
+        """Advance every node to ``now``; ``beats``: the heartbeats read just before."""
+        stalled = self._observer_stalled(now)
+        beats = beats or {}
+        for name, beat in beats.items():
+            p = self.procs.get(name)
+            if p is not None and p.state in LIVE:
+                p.last_beat = beat.at
+                if now - beat.at <= p.policy.heartbeat_timeout / 2:
+                    p.rechecked = False
+                if beat.ready:
+                    self.on_ready(name, now)
+        if stalled:
+            for p in self.procs.values():
+                p.grace_until = max(p.grace_until, now + self._grace(p))
+        self._check_heartbeats(now)
         for p in list(self.procs.values()):
             self._tick_one(p, now)
 
+    # ---- heartbeats --------------------------------------------------------------------
+    def _observer_stalled(self, now: float) -> bool:
+        """True when this tick comes much later than the previous ones did."""
+        last, self._last_tick = self._last_tick, now
+        return last is not None and now - last > STALL
+
+    @staticmethod
+    def _grace(p: Proc) -> float:
+        """Time a node needs to show a fresh heartbeat: two beat periods."""
+        return p.policy.heartbeat_timeout / 2
+
+    def _stale(self, p: Proc, now: float) -> bool:
+        timeout = p.policy.heartbeat_timeout
+        if p.state != State.RUNNING or timeout <= 0 or now < p.grace_until:
+            return False
+        return p.last_beat is not None and now - p.last_beat > timeout
+
+    def _check_heartbeats(self, now: float) -> None:
+        watched = [
+            p for p in self.procs.values() if p.state == State.RUNNING and p.last_beat is not None
+        ]
+        stale = [p for p in watched if self._stale(p, now)]
+        if not stale:
+            return
+        common = len(stale) >= COMMON_MODE_MIN and 2 * len(stale) >= len(watched)
+        if common and any(not p.rechecked for p in stale):
+            # Many at once: the machine or this observer stalled. Look again after a grace
+            # period; only nodes still silent then are probed one by one.
+            names = tuple(sorted(p.spec.name for p in stale))
+            self._notice(
+                now,
+                "common_mode",
+                f"{len(stale)} of {len(watched)} nodes missed their heartbeat at once: "
+                "the machine or this host agent stalled; re-checking, nothing restarted",
+                names,
+            )
+            for p in stale:
+                p.rechecked = True
+                p.grace_until = now + self._grace(p)
+            return
+        for p in stale:
+            age = now - p.last_beat  # type: ignore[operator]
+            p.deadline = now + p.policy.probe_timeout
+            self._set(p, State.UNRESPONSIVE, now, f"no heartbeat for {age:.1f} s; probing")
+            if p.pid is not None:
+                p.host.probe(p.spec.name, p.pid, p.policy.probe_timeout)
+
+    # ---- deadlines ---------------------------------------------------------------------
     def _tick_one(self, p: Proc, now: float) -> None:
-        if p.pid is not None and p.state in LIVE:
-            status = p.host.poll(p.pid)
-            if status is not None:
-                self._on_exit(p, status, now)
-                return
+        if (
+            p.state == State.UNRESPONSIVE
+            and p.last_beat is not None
+            and now - p.last_beat <= p.policy.heartbeat_timeout / 2
+        ):
+            p.deadline = None
+            p.grace_until = now + self._grace(p)
+            self._set(p, State.RUNNING, now, "heartbeat resumed")
+            return
         if p.deadline is None or now < p.deadline:
             return
         match p.state:
             case State.STARTING:
-                self._kill(p, "start timeout")
-                self._failed(p, now, f"not ready within {self.restart.start_timeout:g} s")
+                self._kill(p)
+                self._failed(p, now, f"not ready within {p.policy.start_timeout:g} s")
+            case State.UNRESPONSIVE:
+                self._frozen(p, now, f"no answer to the probe within {p.policy.probe_timeout:g} s")
             case State.BACKOFF:
-                if p.pid is not None and p.host.poll(p.pid) is None:
-                    self._kill(p, "still running after backoff")
                 self._spawn(p, now, f"restart {p.restarts}")
+            case State.FATAL:
+                if p.want_running:
+                    p.failures.clear()
+                    self._spawn(p, now, f"retry after the {p.policy.cooldown:g} s cool-down")
+                else:
+                    p.deadline = None
             case State.STOPPING:
                 self._escalate(p, now)
 
     # ---- internals ---------------------------------------------------------------------
+    def _by_pid(self, pid: int) -> Proc | None:
+        return next((p for p in self.procs.values() if p.pid == pid), None)
+
     def _spawn(self, p: Proc, now: float, reason: str) -> None:
-        p.alive = False
         p.exit_status = None
+        p.last_beat = None
         try:
             p.pid = p.host.spawn(p.spec)
         except Exception as e:
@@ -238,7 +349,8 @@ class Supervisor:
             self._set(p, State.STARTING, now, reason)
             self._failed(p, now, f"spawn failed: {e}")
             return
-        p.deadline = now + self.restart.start_timeout
+        p.deadline = now + p.policy.start_timeout
+        p.grace_until = now + p.policy.heartbeat_timeout
         self._set(p, State.STARTING, now, reason)
 
     def _begin_stop(self, p: Proc, now: float, reason: str) -> None:
@@ -250,54 +362,66 @@ class Supervisor:
 
     def _escalate(self, p: Proc, now: float) -> None:
         if not p.escalation or p.pid is None:
+            p.deadline = None
             return
         sig = p.escalation.pop(0)
         p.host.signal(p.pid, sig)
         p.deadline = now + (self.stop_policy.sigterm_timeout if p.escalation else 1.0)
 
-    def _kill(self, p: Proc, _why: str) -> None:
+    @staticmethod
+    def _kill(p: Proc) -> None:
         """SIGKILL a process that must not go on (frozen, or not ready in time)."""
-        if p.pid is not None and p.host.poll(p.pid) is None:
+        if p.pid is not None:
             p.host.signal(p.pid, signal.SIGKILL)
+
+    def _frozen(self, p: Proc, now: float, why: str) -> None:
+        age = "" if p.last_beat is None else f"no heartbeat for {now - p.last_beat:.1f} s, "
+        self._kill(p)
+        self._failed(p, now, f"frozen ({age}{why}): killed")
 
     def _on_exit(self, p: Proc, status: int, now: float) -> None:
         p.exit_status = status
-        p.alive = False
         if p.state == State.STOPPING:
             p.deadline = None
             self._set(p, State.STOPPED, now, f"stopped (exit status {status})")
             p.pid = None  # after the transition, which names the process that stopped
             return
-        if status == EXIT_CONFIG:
-            p.deadline = None
-            self._set(p, State.FATAL, now, "unusable node spec or implementation (exit 2)")
+        if p.state not in LIVE:
+            p.pid = None  # the one killed before its restart: already accounted for
             return
-        if status == 0 and self.restart.mode != "always":
+        if status == EXIT_CONFIG:
+            self._fatal(p, now, "unusable node spec or implementation (exit 2; see its log)")
+            return
+        if status == 0 and p.policy.restart != "always":
             p.deadline = None
             self._set(p, State.EXITED, now, "exited normally")
             return
         self._failed(p, now, f"exited with status {status}")
 
     def _failed(self, p: Proc, now: float, reason: str) -> None:
-        if self.restart.mode == "never":
+        pol = p.policy
+        if pol.restart == "never" or not p.want_running:
             p.deadline = None
             self._set(p, State.EXITED, now, reason)
             return
-        if not self._count_failure(p, now):
-            p.deadline = None
-            self._set(p, State.FATAL, now, f"{reason}; gave up after {p.restarts} restarts")
+        p.failures = [t for t in p.failures if now - t < pol.restart_window]
+        if len(p.failures) >= pol.max_restarts:
+            self._fatal(
+                p,
+                now,
+                f"{reason}; {len(p.failures)} restarts within {pol.restart_window:g} s",
+            )
             return
-        p.deadline = now + self.restart.backoff(p.restarts - 1)
+        p.failures.append(now)
+        p.restarts += 1
+        backoff = min(pol.backoff_max, pol.backoff_initial * 2 ** (len(p.failures) - 1))
+        p.deadline = now + backoff
         self._set(p, State.BACKOFF, now, reason)
 
-    def _count_failure(self, p: Proc, now: float) -> bool:
-        """Count a restart; False when the budget is spent."""
-        if p.state == State.RUNNING and now - p.since >= self.restart.reset_after:
-            p.restarts = 0
-        if p.restarts >= self.restart.max_restarts:
-            return False
-        p.restarts += 1
-        return True
+    def _fatal(self, p: Proc, now: float, reason: str) -> None:
+        cooldown = p.policy.cooldown
+        p.deadline = now + cooldown
+        self._set(p, State.FATAL, now, f"{reason}; retrying in {cooldown:g} s")
 
     # ---- queries -----------------------------------------------------------------------
     def state(self, name: str) -> State:

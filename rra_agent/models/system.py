@@ -69,6 +69,31 @@ def value_has_type(value: object, type_: ParamType) -> bool:
     return False
 
 
+def coerce_parameter(
+    type_: ParamType, value: object, lo: float | None = None, hi: float | None = None
+) -> ParamValue:
+    """``value`` as a parameter of the declared type and bounds, or ValueError saying why.
+
+    An int is accepted for a float (and becomes a float: a float parameter stays a float);
+    a float with an integral value for an int; NaN and values outside [lo, hi] never.
+    """
+    if type_ == "float" and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    elif type_ == "int" and isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if not value_has_type(value, type_):
+        raise ValueError(f"expected {type_}, got {type(value).__name__} {value!r}")
+    if type_ in ("int", "float"):
+        number = float(value)  # type: ignore[arg-type]
+        if number != number:
+            raise ValueError("NaN is not a value")
+        if lo is not None and number < lo:
+            raise ValueError(f"{value!r} is below its minimum {lo:g}")
+        if hi is not None and number > hi:
+            raise ValueError(f"{value!r} is above its maximum {hi:g}")
+    return value  # type: ignore[return-value]
+
+
 class Port(Model, frozen=True):
     """A data port. A publisher's samples go to ``rra/<system>/data/<topic>``; ``topic``
     defaults to ``<component>/<port>``. A subscriber listens on the topics of the publishers
@@ -78,6 +103,40 @@ class Port(Model, frozen=True):
     direction: Direction
     type: str
     topic: str | None = None
+
+
+class Supervision(Model, frozen=True):
+    """How a component's process is supervised by its host agent (docs/architecture.md,
+    failure model). Times in seconds.
+
+    A process's exit is known from the OS at once. A *frozen* process is one whose heartbeat
+    is older than ``heartbeat_timeout`` and that then does not answer a direct probe within
+    ``probe_timeout``; only then is it killed. More than ``max_restarts`` restarts within
+    ``restart_window`` make it FATAL; a FATAL node is tried again after ``cooldown``.
+    """
+
+    #: Restart after: ``on-failure`` a non-zero exit or a freeze; ``always`` also exit 0.
+    restart: Literal["always", "on-failure", "never"] = "on-failure"
+    #: Heartbeat deadline (the node beats ~4 times per deadline); 0 = no freeze detection.
+    heartbeat_timeout: float = 4.0
+    probe_timeout: float = 1.0
+    #: From spawn to ready (the liveliness token declared after ports and ``on_start``).
+    start_timeout: float = 10.0
+    max_restarts: int = 5
+    restart_window: float = 60.0
+    cooldown: float = 30.0
+    backoff_initial: float = 0.1
+    backoff_max: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in self.__struct_fields__:
+            value = getattr(self, name)
+            if isinstance(value, int | float) and not isinstance(value, bool) and value < 0:
+                raise ValueError(f"{name} must not be negative, got {value}")
+        if 0 < self.heartbeat_timeout < 0.2:
+            raise ValueError("heartbeat_timeout below 0.2 s makes busy nodes look frozen")
+        if self.max_restarts < 1:
+            raise ValueError("max_restarts must be at least 1")
 
 
 class Component(Model, frozen=True):
@@ -91,6 +150,7 @@ class Component(Model, frozen=True):
     binding: Binding = "deployment"
     host: str | None = None
     description: str | None = None
+    supervision: Supervision = Supervision()
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.ports]

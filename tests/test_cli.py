@@ -18,8 +18,8 @@ import pytest
 import yaml
 from conftest import copy_mini, plant, position
 
-from rra_agent.cli import main
 from rra_agent.cli import commands as cli
+from rra_agent.cli import main
 from rra_agent.errors import RraError
 
 pytest.importorskip("rra_agent.dsl.uvl")

@@ -18,7 +18,7 @@ import yaml
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.keys import Keys
-from rra_agent.cli.status import gather
+from rra_agent.cli.status import gather, set_params
 from rra_agent.engines.events import read_events
 
 DATA = Path(__file__).parent / "data" / "relay_system"
@@ -62,7 +62,15 @@ class System:
         return self.client.node(node, req)
 
     def set_level(self, value: float) -> None:
-        assert isinstance(self.ctl("source", m.SetParams(params={"value": value})), m.Ok)
+        """As an operator does (``rra param``): through the Run-time Resolution Engine."""
+        set_params(self.client, "source", {"value": value})
+
+    def leader(self, st: dict, role: str = "resolution") -> str:
+        if role == "resolution":
+            return st["engine"]["leader"][1]
+        reply = self.client.request(K.engine_ctl(role), m.Status(), 2.0)
+        assert isinstance(reply, m.Ok), reply
+        return reply.result["leader"][1]
 
     def events(self) -> list:
         return read_events(self.run_dir / "events.jsonl")
@@ -218,7 +226,7 @@ def test_ctrl_c_leaves_no_process_behind(system, procs):
     sys_ = system()
     st = sys_.gather()
     pids = [n["pid"] for n in st["nodes"] if n.get("pid")]
-    assert len(pids) == 6  # three engines, three nodes
+    assert len(pids) == 9  # three engines in two replicas each, three nodes
     assert sys_.stop() == 0
     from conftest import pid_alive
 
@@ -244,17 +252,44 @@ def test_rra_param_prints_and_sets_a_running_nodes_parameters(system, bus):
     assert rra_param("source", "value=9").returncode == 0
     sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap after rra param")
     bad = rra_param("nosuch", "x=1")
-    assert bad.returncode == 1 and "no running node 'nosuch'" in bad.stderr
+    assert bad.returncode == 1 and "no component 'nosuch'" in bad.stderr
     assert "Traceback" not in bad.stderr
+    bounded = rra_param("source", "rate_hz=x")
+    assert bounded.returncode == 1 and "expected float" in bounded.stderr
 
 
-def test_restarted_resolution_engine_adopts_the_running_nodes(system):
+def test_standby_resolution_engine_takes_over_from_a_killed_leader(system):
     sys_ = system()
     sys_.set_level(7.0)
     st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap to Filtered")
+    leader = sys_.leader(st)
     before = {n["node"]: n.get("pid") for n in st["nodes"] if n["state"] == "RUNNING"}
-    engine_pid = before.pop("resolution")
-    assert sys_.client.host("local", m.SignalNode(node="resolution", signal=signal.SIGKILL))
+    assert sys_.client.host("local", m.SignalNode(node=leader, signal=signal.SIGKILL))
+
+    def takeover(s) -> bool:
+        return s["engine"] is not None and sys_.leader(s) != leader
+
+    st = sys_.wait(takeover, "the standby leading")
+    # It continued from the same model: same selection, same processes, nothing restarted.
+    assert "Filtered" in st["engine"]["selection"]
+    assert set(st["engine"]["running"]) == {"source", "filtered", "sink"}
+    nodes = {n["node"]: n.get("pid") for n in st["nodes"]}
+    assert all(nodes[n] == before[n] for n in ("source", "filtered", "sink"))
+    # ... and it still adapts, while the killed replica comes back as a standby.
+    sys_.set_level(2.0)
+    st = sys_.wait(lambda s: "direct" in s["engine"]["running"], "the swap back to Direct")
+    assert sys_.node(st, "sink")["pid"] == before["sink"]
+    st = sys_.wait(lambda s: sys_.node(s, leader)["state"] == "RUNNING", "the old leader back")
+    assert sys_.leader(st) != leader  # no flapping back
+
+
+def test_a_lone_restarted_resolution_engine_resumes_and_adopts(system):
+    sys_ = system(DATA, "--replicas", "1")
+    sys_.set_level(7.0)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap to Filtered")
+    before = {n["node"]: n.get("pid") for n in st["nodes"] if n["state"] == "RUNNING"}
+    engine_pid = before.pop("resolution-a")
+    assert sys_.client.host("local", m.SignalNode(node="resolution-a", signal=signal.SIGKILL))
 
     def adopted() -> list:
         return [e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
@@ -262,29 +297,22 @@ def test_restarted_resolution_engine_adopts_the_running_nodes(system):
 
     st = sys_.wait(
         lambda s: (
-            sys_.node(s, "resolution").get("pid") not in (None, engine_pid)
-            and sys_.node(s, "resolution")["state"] == "RUNNING"
+            sys_.node(s, "resolution-a").get("pid") not in (None, engine_pid)
             and s["engine"] is not None
+            and s["engine"]["deployed"]
             and adopted()
         ),
         "the resolution engine restarted and adopted the nodes",
     )
-    # The engine came back with the selection it had applied, and took the nodes over:
-    # same processes, no restart, nothing started.
+    # It came back with the selection it had applied (its state file) and took the nodes
+    # over: same processes, no restart, nothing started; the operator's value is kept.
     assert "Filtered" in st["engine"]["selection"]
     assert set(st["engine"]["running"]) == {"source", "filtered", "sink"}
-    after = {
-        n["node"]: n.get("pid")
-        for n in st["nodes"]
-        if n["state"] == "RUNNING" and n["node"] != "resolution"
-    }
-    assert after == before
-    adopt = adopted()
-    assert "adopted 3 running node(s)" in adopt[-1].message
-    # Nothing to do: in particular the source's value, set by hand (as `rra param` would),
-    # is not the run-time resolution model's business and is left as it is.
-    assert adopt[-1].plan == []
-    # ... and it still adapts.
+    assert st["engine"]["overrides"] == {"source": {"value": 7.0}}
+    after = {n["node"]: n.get("pid") for n in st["nodes"] if n["state"] == "RUNNING"}
+    assert all(after[n] == before[n] for n in ("source", "filtered", "sink"))
+    adopt = adopted()[-1]
+    assert not any(p.startswith(("start", "stop")) for p in adopt.plan), adopt.plan
     sys_.set_level(2.0)
     st = sys_.wait(lambda s: "direct" in s["engine"]["running"], "the swap back to Direct")
     assert sys_.node(st, "sink")["pid"] == before["sink"]

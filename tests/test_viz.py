@@ -185,8 +185,15 @@ def rerun_loaded(pid: int) -> bool:
     return "rerun_bindings" in Path(f"/proc/{pid}/maps").read_text()
 
 
-def parent(pid: int) -> int:
-    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+ENGINES = [f"{e}-{r}" for e in ("monitor", "adaptation", "resolution") for r in "ab"]
+
+
+def children(pid: int) -> list[int]:
+    return [int(x) for x in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def cmdline(pid: int) -> str:
+    return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
 
 
 def run_system(procs, bus, run_dir: Path, *extra: str, adapt: bool) -> dict[str, bool]:
@@ -197,7 +204,7 @@ def run_system(procs, bus, run_dir: Path, *extra: str, adapt: bool) -> dict[str,
         "rra_agent", "up", str(DATA), "--run-dir", str(run_dir), "-q",
         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra, name="up",
     )  # fmt: skip
-    from rra_agent.cli.status import gather
+    from rra_agent.cli.status import gather, set_params
 
     with BusClient(bus, "relay_system") as client:
 
@@ -209,7 +216,7 @@ def run_system(procs, bus, run_dir: Path, *extra: str, adapt: bool) -> dict[str,
                 # every process settled (the resolution engine turns RUNNING only after its
                 # deployment is done, so "sink running" alone can be seen a moment earlier)
                 settled = {n["node"]: n["state"] for n in st["nodes"]}
-                ready = settled.get("resolution") == "RUNNING" and all(
+                ready = all(settled.get(e) == "RUNNING" for e in ENGINES) and all(
                     state in ("RUNNING", "STOPPED") for state in settled.values()
                 )
                 return st if ready and st["engine"] and pred(st["engine"]) else None
@@ -221,12 +228,12 @@ def run_system(procs, bus, run_dir: Path, *extra: str, adapt: bool) -> dict[str,
 
         st = engine(lambda e: "sink" in e["running"] and not e["failed"])
         if adapt:
-            wait_until(lambda: ("local", "source") in client.alive(), 10, "source's token")
-            reply = client.node("source", m.SetParams(params={"value": 7.0}))
-            assert isinstance(reply, m.Ok)
+            set_params(client, "source", {"value": 7.0})
             st = engine(lambda e: "Filtered" in e["selection"] and "filtered" in e["running"])
     pids = {n["node"]: n["pid"] for n in st["nodes"] if n["state"] == "RUNNING"}
-    pids |= {"up": proc.pid, "zygote": parent(pids["sink"])}
+    nodes = set(pids.values())
+    zygote = next(p for p in children(proc.pid) if p not in nodes and "forkserver" in cmdline(p))
+    pids |= {"up": proc.pid, "zygote": zygote}
     loaded = {name: rerun_loaded(pid) for name, pid in pids.items()}
     proc.send_signal(signal.SIGINT)
     assert proc.wait(30) == 0, procs.log("up")[-3000:]
@@ -239,8 +246,8 @@ def test_rra_up_saves_one_verified_recording_of_the_whole_system(procs, bus, tmp
     loaded = run_system(procs, bus, run_dir, "--rerun", "save", str(out), adapt=True)
     # Only the engines that log imported rerun: not the nodes, the fork server or rra up.
     assert loaded == {
-        "monitor": True, "adaptation": True, "resolution": True, "source": False,
-        "filtered": False, "sink": False, "up": False, "zygote": False,
+        **dict.fromkeys(ENGINES, True),
+        "source": False, "filtered": False, "sink": False, "up": False, "zygote": False,
     }  # fmt: skip
     assert out.exists()
     recording.verify(out)
@@ -249,7 +256,7 @@ def test_rra_up_saves_one_verified_recording_of_the_whole_system(procs, bus, tmp
             "/events", "/timing/execute", "/rules"} <= paths  # fmt: skip
     assert {f"/nodes/{n}/state" for n in ("source", "direct", "filtered", "sink")} <= paths
     files = sorted(p.name for p in (run_dir / "rerun").glob("*/*.rrd"))
-    assert files == ["adaptation.rrd", "monitor.rrd", "resolution.rrd"]
+    assert files == sorted(f"{e}.rrd" for e in ENGINES)
     printed = recording.run_cli("rrd", "print", "-vvv", str(out)).stdout
     assert "adaptation: applied selection ['Filtered', 'Path', 'Tuning']" in printed
 
@@ -257,8 +264,7 @@ def test_rra_up_saves_one_verified_recording_of_the_whole_system(procs, bus, tmp
 def test_no_process_imports_rerun_when_rerun_is_off(procs, bus, tmp_path):
     run_dir = tmp_path / "run"
     loaded = run_system(procs, bus, run_dir, adapt=False)
-    assert set(loaded) == {"monitor", "adaptation", "resolution", "source", "direct", "sink",
-                           "up", "zygote"}  # fmt: skip
+    assert set(loaded) == {*ENGINES, "source", "direct", "sink", "up", "zygote"}
     assert not any(loaded.values()), loaded
     assert not (run_dir / "rerun").exists()
 

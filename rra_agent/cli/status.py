@@ -29,18 +29,24 @@ def configure_status(p: argparse.ArgumentParser) -> None:
     p.add_argument("--system", required=True, help="system name (the package's)")
     p.add_argument("--watch", type=float, metavar="S", help="refresh every S seconds")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--wide", action="store_true", help="also show each node's implementation")
     add_bus_arguments(p)
 
 
+def _leader_token(client: BusClient, role: str) -> str:
+    return f"{client.keys.lead(role)}/*/*"
+
+
 def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
-    """The engine's status and every host agent's node list, as plain data."""
-    out: dict[str, Any] = {"engine": None, "nodes": []}
-    # A client just connected has not been told about the engine yet: query it once its
-    # token has reached this session (its queryable was declared before the token).
-    engine_token = f"{client.keys.prefix}/alive/*/resolution"
+    """The engine's status, every host agent's node list and every process's counters."""
+    out: dict[str, Any] = {"engine": None, "nodes": [], "stats": {}}
+    # A client just connected has not been told about the engine yet: query it once the
+    # leader's token has reached this session (its queryable was declared before it).
     with contextlib.suppress(TimeoutError):
         wait_until(
-            lambda: list(client.session.liveliness().get(engine_token, timeout=0.5)),
+            lambda: list(
+                client.session.liveliness().get(_leader_token(client, "resolution"), timeout=0.5)
+            ),
             timeout,
             "the resolution engine",
             interval=0.02,
@@ -64,40 +70,93 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         if isinstance(reply, m.Ok):
             out["nodes"].extend(reply.result)
     out["hosts"] = hosts
+    out["stats"] = process_stats(client, timeout)
     return out
 
 
-def render(status: dict[str, Any]) -> str:
+def process_stats(client: BusClient, timeout: float = 1.0) -> dict[str, dict[str, Any]]:
+    """Every process's counters (`ProcessStats`) by name: one query to all at once."""
+    out: dict[str, dict[str, Any]] = {}
+    codec = m.Codec[m.Reply](m.Reply)
+    for key in (f"{client.keys.prefix}/node/*/ctl", f"{client.keys.prefix}/host/*/ctl"):
+        for reply in client.session.get(
+            key,
+            payload=m.Codec[Any](Any).encode(m.Stats()),
+            timeout=timeout,
+            consolidation=zenoh.ConsolidationMode.NONE,
+        ):
+            if reply.ok is None:
+                continue
+            try:
+                answer = codec.decode(reply.ok.payload.to_bytes())
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+                stats = answer.result
+                out[f"{stats.get('role')}:{stats.get('name')}"] = stats
+    return out
+
+
+def render(status: dict[str, Any], *, wide: bool = False) -> str:
     lines = []
     eng = status.get("engine")
     if eng:
-        lines.append(f"system      {eng['system']}   deployment: {', '.join(eng['deployment'])}")
+        leader = eng.get("leader") or []
+        who = f"   leader {leader[1]} (epoch {leader[0]})" if leader else ""
+        lines.append(f"system      {eng['system']} ({', '.join(eng['deployment'])}){who}")
         lines.append(f"selection   {', '.join(eng['selection']) or '-'}")
         cv = ", ".join(f"{k}={v:.3g}" for k, v in sorted(eng["cv"].items()))
         lines.append(f"cv          {cv or '-'}")
+        for node, values in sorted(eng.get("overrides", {}).items()):
+            set_ = ", ".join(f"{k}={v!r}" for k, v in sorted(values.items()))
+            lines.append(f"operator    {node}: {set_}")
         if eng.get("failed"):
             lines.append("last adaptation FAILED (rolled back); see `rra events`")
     else:
         lines.append("resolution engine: not reachable")
-    running = (eng or {}).get("running", {})
-    standby = set((eng or {}).get("standby", []))
-    lines.append("")
-    lines.append(
-        f"{'NODE':<24} {'HOST':<10} {'STATE':<9} {'PID':>7} {'ACTIVE':<7} "
-        f"{'RESTARTS':>8}  IMPLEMENTATION"
+    unreachable = set((eng or {}).get("unreachable", []))
+    hosts = ", ".join(
+        f"{h} ({'unreachable' if h in unreachable else 'up'})" for h in status.get("hosts", [])
     )
+    lines.append(f"hosts       {hosts or '-'}")
+    desired = (eng or {}).get("desired", {})
+    stats = {
+        k.split(":", 1)[1]: v
+        for k, v in status.get("stats", {}).items()
+        if not k.startswith("host:")
+    }
+    lines.append("")
+    header = (
+        f"{'NODE':<24} {'HOST':<8} {'WANT':<7} {'STATE':<12} {'PID':>7} {'RST':>3} "
+        f"{'RECV':>7} {'DROP':>5} {'REJ':>4}"
+    )
+    lines.append(header + ("  IMPLEMENTATION" if wide else ""))
+    seen = set()
     for n in sorted(status["nodes"], key=lambda n: (n["host"], n["node"])):
-        active = n.get("active", True)
-        if n["node"] in running:
-            active = running[n["node"]]["active"]
-        role = " (standby)" if n["node"] in standby else ""
-        pid = str(n.get("pid") or "-")
-        lines.append(
-            f"{n['node']:<24} {n['host']:<10} {n['state']:<9} {pid:>7} "
-            f"{'yes' if active else 'no':<7} {n.get('restarts', 0):>8}  "
-            f"{n.get('implementation', '')}{role}"
-        )
+        seen.add(n["node"])
+        lines.append(_row(n, desired.get(n["node"]), stats.get(n["node"], {}), wide))
+    for name, d in sorted(desired.items()):
+        if name not in seen:  # desired, but no host agent reports it
+            row = {"node": name, "host": d["host"], "state": "UNKNOWN", "restarts": 0}
+            lines.append(_row(row, d, {}, wide))
     return "\n".join(lines)
+
+
+def _row(n: dict[str, Any], want: dict[str, Any] | None, st: dict[str, Any], wide: bool) -> str:
+    if want is None:
+        role = st.get("role", "node")
+        wanted = "engine" if role in ("monitor", "adaptation", "resolution") else "-"
+    else:
+        wanted = "standby" if want.get("standby") else "run"
+    pid = str(n.get("pid") or "-")
+    recv, drop, rej = (
+        str(st.get(k, 0)) if st else "-" for k in ("received", "dropped", "rejected")
+    )
+    line = (
+        f"{n['node'][:24]:<24} {n['host'][:8]:<8} {wanted:<7} {n['state']:<12} {pid:>7} "
+        f"{n.get('restarts', 0):>3} {recv:>7} {drop:>5} {rej:>4}"
+    )
+    return line + (f"  {n.get('implementation', '')}" if wide else "")
 
 
 def run_status(args: argparse.Namespace) -> int:
@@ -111,7 +170,7 @@ def run_status(args: argparse.Namespace) -> int:
             else:
                 if args.watch:
                     print("\033[2J\033[H", end="")
-                print(render(status), flush=True)
+                print(render(status, wide=args.wide), flush=True)
             if not args.watch:
                 return 0
             time.sleep(args.watch)
@@ -176,6 +235,9 @@ def configure_param(p: argparse.ArgumentParser) -> None:
     p.add_argument("--system", required=True, help="system name (the package's)")
     p.add_argument("node", help="node name")
     p.add_argument("values", nargs="*", metavar="NAME=VALUE", help="values are YAML scalars")
+    p.add_argument(
+        "--reset", action="append", default=[], metavar="NAME", help="back to the model's value"
+    )
     add_bus_arguments(p)
 
 
@@ -194,23 +256,61 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
     return out
 
 
+def set_params(
+    client: BusClient,
+    node: str,
+    values: dict[str, Any],
+    reset: list[str] = (),
+    timeout: float = 5.0,  # type: ignore[assignment]
+) -> dict[str, Any]:
+    """Set a node's parameters as an operator: through the Run-time Resolution Engine, so
+    they are checked, become part of the Run-time Configured System Model and survive
+    restarts. Raises `RraError` with the engine's refusal."""
+    try:
+        wait_until(
+            lambda: list(
+                client.session.liveliness().get(_leader_token(client, "resolution"), timeout=0.5)
+            ),
+            timeout,
+            "the resolution engine",
+            interval=0.02,
+        )
+    except TimeoutError:
+        raise RraError(
+            f"no Run-time Resolution Engine leads system {client.keys.system!r}"
+        ) from None
+    request = m.SetParam(node=node, params=values, reset=list(reset))
+    reply = client.request(client.keys.engine_ctl("resolution"), request, timeout)
+    if isinstance(reply, m.Err):
+        raise RraError(f"{node}: {reply.message}")
+    return reply.result  # type: ignore[union-attr]
+
+
 def run_param(args: argparse.Namespace) -> int:
     """Set parameters of a running node (or print them all when none is given)."""
     values = parse_assignments(args.values)
     with BusClient(bus_from_args(args), args.system) as client:
-        try:  # the router may still be telling this new client about the tokens
-            wait_until(
-                lambda: any(n == args.node for _, n in client.alive()),
-                2.0,
-                f"node {args.node}",
-                interval=0.05,
-            )
-        except TimeoutError:
-            raise RraError(f"no running node {args.node!r} in system {args.system!r}") from None
-        reply = client.node(args.node, m.SetParams(params=values) if values else m.Describe())
-    if isinstance(reply, m.Err):
-        raise RraError(f"{args.node}: {reply.message}")
-    params = values or reply.result["params"]
+        if values or args.reset:
+            result = set_params(client, args.node, values, args.reset)
+            params = {**result.get("params", {}), **{n: "(model value)" for n in args.reset}}
+        else:
+            try:  # the router may still be telling this new client about the tokens
+                wait_until(
+                    lambda: any(n == args.node for _, n in client.alive()),
+                    2.0,
+                    f"node {args.node}",
+                    interval=0.05,
+                )
+            except TimeoutError:
+                raise RraError(f"no running node {args.node!r} in system {args.system!r}") from None
+            reply = client.node(args.node, m.Describe())
+            if isinstance(reply, m.Err):
+                raise RraError(f"{args.node}: {reply.message}")
+            params = reply.result["params"]
     for name, value in sorted(params.items()):
-        print(f"{name} = {value!r}")
+        print(
+            f"{name} = {value!r}"
+            if not isinstance(value, str) or "(" not in value
+            else f"{name} = {value}"
+        )
     return 0

@@ -1,10 +1,12 @@
 """``rra up PKG --select ...``: run a whole system on this machine until Ctrl-C.
 
 This process is the local host agent and the bus hub. It supervises the three engines as
-processes of their own — Context Monitor, Adaptation Engine, Run-time Resolution Engine —
-and, through the resolution engine's requests, every component node. Ctrl-C (or SIGTERM)
-stops all of them with the SIGINT -> SIGTERM -> SIGKILL escalation and exits only when
-none is left; a SIGKILL of this process takes its children with it (parent-death signal).
+processes of their own — Context Monitor, Adaptation Engine, Run-time Resolution Engine, each
+as ``--replicas`` replicas (default 2: a leader and a hot standby, named ``<engine>-a``,
+``<engine>-b``...) — and, through the resolution engine's requests, every component node.
+Ctrl-C (or SIGTERM) stops all of them with the SIGINT -> SIGTERM -> SIGKILL escalation and
+exits only when none is left (a second Ctrl-C kills what is left at once); a SIGKILL of this
+process takes its children with it (parent-death signal).
 Logs go to the run folder: one file per process and ``events.jsonl``.
 """
 
@@ -22,6 +24,12 @@ from rra_agent.host.agent import HostAgent
 from rra_agent.models.system import Command
 
 ENGINES = ("monitor", "adaptation", "resolution")
+REPLICA_NAMES = "abcdefgh"
+
+
+def replica_names(engine: str, replicas: int) -> list[str]:
+    """``monitor-a``, ``monitor-b``...: never the role's own name (its leader's endpoint)."""
+    return [f"{engine}-{REPLICA_NAMES[i]}" for i in range(replicas)]
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -40,6 +48,14 @@ def configure(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="do not run the adaptation engine (a scenario's control case)",
     )
+    p.add_argument(
+        "--replicas",
+        type=int,
+        default=2,
+        choices=range(1, len(REPLICA_NAMES) + 1),
+        metavar="N",
+        help="replicas of each engine: a leader and N-1 hot standbys (default 2)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     # -- Rerun logging (rra_agent.viz) --
     p.add_argument(
@@ -54,7 +70,12 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def engine_specs(
-    dep: Deployment, names: list[str], run_dir: Path, host: str, adaptation: bool
+    dep: Deployment,
+    names: list[str],
+    run_dir: Path,
+    host: str,
+    adaptation: bool,
+    replicas: int = 2,
 ) -> list[m.NodeSpec]:
     """The engines as supervised processes (their command lines are their implementations)."""
     select = ["--select", ",".join(names)] if names else []
@@ -72,11 +93,10 @@ def engine_specs(
             "--run-dir",
             str(run_dir),
         ]
-        specs.append(
-            m.NodeSpec(
-                system=dep.system, name=engine, host=host, implementation=Command(command=cmd)
-            )
-        )
+        specs += [
+            m.NodeSpec(system=dep.system, name=name, host=host, implementation=Command(command=cmd))
+            for name in replica_names(engine, replicas)
+        ]
     return specs
 
 
@@ -110,7 +130,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"rra up: --rerun: {e}", file=sys.stderr)
         return 2
     recording.export(rerun_config)
-    specs = engine_specs(dep, names, run_dir, args.host, not args.no_adaptation)
+    specs = engine_specs(
+        dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas
+    )
     allowed = set(dep.implementations) | {" ".join(s.implementation.command) for s in specs}  # type: ignore[union-attr]
     agent = HostAgent(dep.system, args.host, bus, run_dir / "logs", hub=True, allowed=allowed)
     agent.observers.append(_printer(args.quiet))

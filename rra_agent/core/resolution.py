@@ -58,6 +58,7 @@ from rra_agent.models.system import (
     Parameter,
     ParamValue,
     SystemModel,
+    coerce_parameter,
     parse_endpoint,
     value_has_type,
 )
@@ -709,6 +710,55 @@ def wiring(c: Component, subs: Mapping[tuple[str, str], tuple[str, ...]]) -> dic
             p.name: p.topic or f"{c.name}/{p.name}" for p in c.ports if p.direction == "publish"
         },
     }
+
+
+def check_parameters(
+    model: SystemModel, component: str, values: Mapping[str, object]
+) -> dict[str, ParamValue]:
+    """Parameter values for ``component`` of ``model``, coerced to their declared types, or
+    `ResolutionError` naming every value that is unknown, of the wrong type or out of its
+    declared bounds (nothing is half-accepted)."""
+    c = next((x for x in model.components if x.name == component), None)
+    if c is None:
+        known = ", ".join(sorted(x.name for x in model.components)) or "none"
+        raise ResolutionError(
+            f"no component {component!r} in the running system (running: {known})"
+        )
+    out: dict[str, ParamValue] = {}
+    problems = []
+    for name, value in values.items():
+        decl = c.parameters.get(name)
+        if decl is None:
+            known = ", ".join(sorted(c.parameters)) or "none"
+            problems.append(f"{component} has no parameter {name!r} (known: {known})")
+            continue
+        try:
+            out[name] = coerce_parameter(decl.type, value, decl.min, decl.max)
+        except ValueError as e:
+            problems.append(f"{component}.{name}: {e}")
+    if problems:
+        raise ResolutionError("; ".join(problems))
+    return out
+
+
+def with_parameters(
+    model: SystemModel, values: Mapping[str, Mapping[str, ParamValue]]
+) -> SystemModel:
+    """``model`` with these parameter values (component -> name -> value) set over the
+    model's own (operators' values, checked with `check_parameters`)."""
+    if not values:
+        return model
+    components = []
+    for c in model.components:
+        given = values.get(c.name)
+        if given:
+            params = {
+                k: msgspec.structs.replace(p, value=given[k]) if k in given else p
+                for k, p in c.parameters.items()
+            }
+            c = msgspec.structs.replace(c, parameters=params)
+        components.append(c)
+    return msgspec.structs.replace(model, components=components)
 
 
 def peers_of(system: SystemModel, name: str) -> frozenset[tuple[str, str]]:

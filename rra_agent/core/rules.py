@@ -712,6 +712,23 @@ class Engine:
     def cv(self) -> dict[str, float]:
         return {c.key: v for c, v in zip(self._cvs, self._effective, strict=True) if v is not None}
 
+    def adopt(self, selection: Collection[str], cv: Mapping[str, float]) -> None:
+        """Continue from this run-time selection and these CV values (a replica taking over
+        from another, an engine resuming over a running system). Raises `SelectionError` if
+        the selection is not valid; CV values are clamped as the engine's own are."""
+        chosen = frozenset(selection)
+        problems = check_selection(self.fm, self.deployment | chosen)
+        if problems:
+            raise SelectionError(
+                "cannot adopt the run-time selection", [p.message for p in problems]
+            )
+        self.selection = chosen
+        self._requested = [
+            float(cv[c.key]) if c.key in cv else r
+            for c, r in zip(self._cvs, self._requested, strict=True)
+        ]
+        self._effective = self._clamp_all(chosen)
+
     def tick(
         self, now: float, measurements: Mapping[str, Sample], *, changed: Collection[str] = ()
     ) -> TickResult:
@@ -1045,6 +1062,29 @@ def _rejected(report: FiredRule, reason: str) -> Rejected:
 def _due(timed: list[_RuleSchedule], now: float) -> bool:
     """Whether a rule with ``period N ms`` (N > 0) is due: N ms after its last run."""
     return any(r.last is None or now - r.last >= r.period - 1e-9 for r in timed)  # type: ignore[operator]
+
+
+def clamp_cv(
+    fm: FeatureModel, active: Collection[str], values: Mapping[str, float]
+) -> tuple[dict[str, float], list[str]]:
+    """CV values clamped into their attributes' bounds and the NFRs of the ``active``
+    features (as the engine clamps its own), and the names that are no CV attribute."""
+    table = {c.key: c for c in _cv_table(fm)}
+    active_set = frozenset(active)
+    out: dict[str, float] = {}
+    unknown = []
+    for name, value in values.items():
+        cv = table.get(name)
+        if cv is None or isinstance(value, bool) or not isinstance(value, int | float):
+            unknown.append(name)
+            continue
+        if value != value:  # NaN
+            unknown.append(name)
+            continue
+        clamped = _clamp(cv, float(value), active_set)
+        if clamped is not None:
+            out[name] = clamped
+    return out, unknown
 
 
 def _clamp(cv: _Cv, value: float | None, active: frozenset[str]) -> float | None:

@@ -16,6 +16,11 @@ Parameters, rewiring, activation and state go straight to the nodes' control que
 whole batch in flight at once; the host agent is told the new spec asynchronously
 (``UpdateSpec``) so a restart after a crash comes back with the current wiring and
 parameters, without slowing the switch down.
+
+Every request that changes something carries ``fence``, the term of the engine leader that
+sends it (`claim` makes a new leader known to every host agent and node first). A node
+already running with the requested spec counts as started, one already stopped as
+stopped: a new leader may repeat what its predecessor had begun.
 """
 
 from __future__ import annotations
@@ -63,6 +68,8 @@ class ZenohActuator:
         #: Nodes whose liveliness token this session sees: a direct link to them exists.
         self.alive: set[str] = set()
         self.dropped = 0
+        #: The leader term put on every request that changes the system (None: not leading).
+        self.fence: m.Fence | None = None
         self._pending: list[Any] = []
         self._subs = [
             session.declare_subscriber(keys.events, self._on_event),
@@ -129,16 +136,50 @@ class ZenohActuator:
                     raise StepFailed(f"{what} {', '.join(pending)}: timed out after {timeout:g} s")
                 self.cond.wait(left)
 
+    def _fenced(self, request: Any) -> Any:
+        if self.fence is not None and "fence" in request.__struct_fields__:
+            return msgspec.structs.replace(request, fence=self.fence)
+        return request
+
+    def claim(
+        self, fence: m.Fence, hosts: list[str], nodes: list[str], timeout: float = 0.3
+    ) -> int:
+        """Make a new leader known to every host agent and node at once; the highest epoch
+        any of them had accepted (above ``fence.epoch``: this leader is out of date)."""
+        payload = _ANY.encode(m.Claim(fence=fence))
+        keys = [self.keys.host_ctl(h) for h in hosts] + [self.keys.node_ctl(n) for n in nodes]
+        handlers = [self.session.get(k, payload=payload, timeout=timeout) for k in keys]
+        highest = fence.epoch
+        for handler in handlers:
+            for reply in handler:
+                if reply.ok is None:
+                    continue
+                try:
+                    answer = _REPLY.decode(reply.ok.payload.to_bytes())
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    continue
+                if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+                    seen = answer.result.get("fence") or [0]
+                    highest = max(highest, int(seen[0]))
+        return highest
+
     # ---- Actuator ----------------------------------------------------------------------
     def start(self, specs: list[m.NodeSpec]) -> None:
         mark = self._mark()
         sent: list[m.NodeSpec] = []
+        waiting: list[m.NodeSpec] = []
         try:
             for spec in specs:
-                self._host(spec, m.StartNode(spec=spec), "start")
+                result = self._host(spec, m.StartNode(spec=spec), "start")
                 sent.append(spec)
+                if not (
+                    isinstance(result, dict)
+                    and result.get("already")
+                    and result.get("state") == "RUNNING"
+                ):
+                    waiting.append(spec)
             self._wait(
-                [s.name for s in specs],
+                [s.name for s in waiting],
                 mark,
                 # RUNNING (the host agent saw the token) and the token seen here: this
                 # session also knows the node's control queryable, declared before it.
@@ -163,13 +204,16 @@ class ZenohActuator:
 
     def stop(self, specs: list[m.NodeSpec]) -> None:
         mark = self._mark()
+        waiting: list[m.NodeSpec] = []
         try:
             for spec in specs:
-                self._host(spec, m.StopNode(node=spec.name), "stop")
+                result = self._host(spec, m.StopNode(node=spec.name), "stop")
+                if not (isinstance(result, dict) and result.get("already")):
+                    waiting.append(spec)
         except NoReply as e:
             raise StepFailed(str(e)) from None
         self._wait(
-            [s.name for s in specs],
+            [s.name for s in waiting],
             mark,
             done=lambda evs: any(e.state in TERMINAL for e in evs),
             failed=lambda evs: None,
@@ -184,7 +228,7 @@ class ZenohActuator:
         handlers = [
             self.session.get(
                 self.keys.node_ctl(c.spec.name),
-                payload=_ANY.encode(c.request),
+                payload=_ANY.encode(self._fenced(c.request)),
                 timeout=self.request_timeout,
             )
             for c in batch
@@ -215,7 +259,7 @@ class ZenohActuator:
         )
 
     def _host(self, spec: m.NodeSpec, request: m.HostRequest, what: str) -> Any:
-        reply = self.client.host(spec.host, request, self.request_timeout)
+        reply = self.client.host(spec.host, self._fenced(request), self.request_timeout)
         return self._ok(reply, f"{what} {spec.name} on {spec.host}")
 
     @staticmethod
@@ -239,7 +283,7 @@ class ZenohActuator:
             self._pending.append(
                 self.session.get(
                     self.keys.host_ctl(host),
-                    payload=_ANY.encode(m.UpdateSpec(specs=group)),
+                    payload=_ANY.encode(m.UpdateSpec(specs=group, fence=self.fence)),
                     timeout=self.request_timeout,
                 )
             )

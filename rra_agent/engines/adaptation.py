@@ -5,35 +5,47 @@ Adaptation Model with the pure engine (`rra_agent.core.rules.Engine`) on each ne
 (rules with ``period 0``) and periodically (rules with a period, every ``tick`` seconds), and
 publishes the run-time feature selection and the Continuous Variability values on
 ``rra/<system>/selection``: at once when they change, and as a heartbeat every
-``heartbeat`` seconds so a late joiner (a restarted resolution engine) learns the current
-state. Each selection names its cause: the rules that fired and the stamps of the
-measurements they read. Conflicting actions in one tick are published as `ConflictReport`s.
+``heartbeat`` seconds. Each selection names its cause (the rules that fired and the stamps of
+the measurements they read) and carries the fence of the leader that decided it.
+Conflicting actions are published as `ConflictReport`s.
+
+It never publishes a default selection over a running system: before it evaluates anything
+it resumes from the system's current selection and CV values, asked from the Run-time
+Resolution Engine (``GetState``), and from the newest measurements, asked from the Context
+Monitor. Replicas: every replica evaluates (a hot standby) and adopts each selection its
+leader publishes; only the leader publishes. Evaluations are coalesced: a flood of
+measurements costs one evaluation per main-loop turn, not one per sample.
 """
 
 from __future__ import annotations
 
 import sys
-import threading
 import time
+from typing import Any
 
 import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.keys import Keys
-from rra_agent.bus.loop import MainLoop
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.counters import too_large
 from rra_agent.core.rules import Engine, TickResult
 from rra_agent.deployment import Deployment
+from rra_agent.engines.base import EngineProcess
+from rra_agent.errors import SelectionError
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
+_STATE = m.Codec[m.StateMessage](m.StateMessage)
+_REPLY = m.Codec[m.Reply](m.Reply)
+_ANY = m.Codec[Any](Any)
 
 
-class AdaptationProcess:
+class AdaptationProcess(EngineProcess):
+    role = NAME
+
     def __init__(
         self,
         dep: Deployment,
@@ -43,58 +55,162 @@ class AdaptationProcess:
         name: str = NAME,
         tick: float = 0.05,
         heartbeat: float = 1.0,
+        resume_timeout: float = 60.0,
     ) -> None:
         if dep.package.adaptation is None:
             raise ValueError(f"package {dep.package.name!r} has no adaptation model")
-        self.dep = dep
-        self.bus = bus
-        self.host = host
-        self.name = name
+        super().__init__(dep, bus, host=host, name=name)
         self.tick_period = tick
         self.heartbeat = heartbeat
-        self.keys = Keys(dep.system)
+        self.resume_timeout = resume_timeout
         self.engine = Engine(dep.package.features, dep.selection, dep.package.adaptation)
-        self.loop = MainLoop(time.monotonic)
-        self.lock = threading.Lock()
         self.measurements: dict[str, tuple[object, float]] = {}
         self.changed: set[str] = set()
-        self.dropped = 0
         self.seq = 0
         self.last_sent = 0.0
+        #: Resumed from the running system: only then does this replica evaluate.
+        self.resumed = False
+        self._scheduled = False
+        self._floor = 0
         self.publisher: zenoh.Publisher | None = None
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
+        raw = sample.payload.to_bytes()
+        if too_large("ctx", len(raw)):
+            self.drop("too_large", f"measurement of {len(raw)} bytes")
+            return
         try:
-            msg = _CTX.decode(sample.payload.to_bytes())
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            with self.lock:
-                self.dropped += 1
+            msg = _CTX.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.drop("malformed", f"measurement: {e}")
             return
         with self.lock:
+            self.counters.received += 1
             self.measurements[msg.name] = (msg.value, msg.stamp)
             self.changed.add(msg.name)
-        self.loop.post(self.evaluate)
+            schedule, self._scheduled = not self._scheduled, True
+        if schedule and not self.loop.post(self._evaluate_posted):
+            with self.lock:
+                self._scheduled = False
+
+    def _on_selection(self, sample: zenoh.Sample) -> None:
+        raw = sample.payload.to_bytes()
+        if too_large("selection", len(raw)):
+            return
+        try:
+            msg = _SEL.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        if isinstance(msg, m.Selection) and msg.fence is not None and msg.fence.leader != self.name:
+            self.loop.post(lambda: self._follow(msg))
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        try:
+            state = _STATE.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        if state.selection_fence is not None:
+            epoch = state.selection_fence.epoch
+            self.loop.post(lambda: self._observe_epoch(epoch))
+
+    # ---- resuming and following (main thread) -------------------------------------------
+    def starting(self) -> None:
+        """Resume from the running system before taking part in the election."""
+        state = self._ask_state()
+        if state is not None:
+            self._adopt(state.selection, state.cv, "resumed from the system's state")
+            if state.selection_fence is not None:
+                self._floor = state.selection_fence.epoch
+                self.seq = state.applied
+        self._ask_measurements()
+        self.resumed = True
+
+    def epoch_floor(self) -> int:
+        return self._floor
+
+    def _ask_state(self) -> m.EngineState | None:
+        """The Run-time Resolution Engine's state; waits for it (it deploys at start)."""
+        assert self.session is not None
+        deadline = time.monotonic() + self.resume_timeout
+        while not self.loop.stopping:
+            for reply in self.session.get(
+                self.keys.engine_ctl("resolution"), payload=_ANY.encode(m.GetState()), timeout=1.0
+            ):
+                if reply.ok is None:
+                    continue
+                try:
+                    answer = _REPLY.decode(reply.ok.payload.to_bytes())
+                    if isinstance(answer, m.Ok) and answer.result:
+                        return msgspec.convert(answer.result, m.EngineState)
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    continue
+            if time.monotonic() > deadline:
+                print(f"rra {self.name}: no Run-time Resolution Engine answered", file=sys.stderr)
+                return None
+            self.loop.cycle(0.1)
+        return None
+
+    def _ask_measurements(self) -> None:
+        assert self.session is not None
+        for reply in self.session.get(self.keys.ctx_all, timeout=1.0):
+            if reply.ok is None:
+                continue
+            try:
+                msg = _CTX.decode(reply.ok.payload.to_bytes())
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            with self.lock:
+                known = self.measurements.get(msg.name)
+                if known is None or known[1] < msg.stamp:
+                    self.measurements[msg.name] = (msg.value, msg.stamp)
+
+    def _adopt(self, selection: list[str], cv: dict[str, float], why: str) -> None:
+        try:
+            self.engine.adopt(selection, cv)
+        except SelectionError as e:
+            self.refuse("selection", f"{why}: {e}")
+
+    def _follow(self, msg: m.Selection) -> None:
+        """A selection of the leader: a standby keeps the same state."""
+        assert msg.fence is not None
+        self._observe_epoch(msg.fence.epoch)
+        if not self.leading:
+            self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
+            self.seq = max(self.seq, msg.seq)
+
+    def _observe_epoch(self, epoch: int) -> None:
+        if self.election is not None:
+            self.election.observe_epoch(epoch)
+        else:
+            self._floor = max(self._floor, epoch)
 
     # ---- evaluation (main thread) ------------------------------------------------------
-    def evaluate(self) -> TickResult | None:
+    def _evaluate_posted(self) -> None:
+        with self.lock:
+            self._scheduled = False
+        self.evaluate()
+
+    def evaluate(self, *, force: bool = False) -> TickResult | None:
+        if not self.resumed:
+            return None
         with self.lock:
             values, changed = dict(self.measurements), self.changed
             self.changed = set()
         now = time.time()
         result = self.engine.tick(now, values, changed=changed)
-        if result.changed or now - self.last_sent >= self.heartbeat:
+        if self.leading and (force or result.changed or now - self.last_sent >= self.heartbeat):
             self.publish(result, values, now)
-        for c in result.conflicts:
-            self._send(
-                m.ConflictReport(
-                    stamp=now,
-                    target=c.target,
-                    rules=[c.winner.rule, c.loser.rule],
-                    resolution=f"{c.kind}: {c.winner.rule} wins (written later)",
+            for c in result.conflicts:
+                self._send(
+                    m.ConflictReport(
+                        stamp=now,
+                        target=c.target,
+                        rules=[c.winner.rule, c.loser.rule],
+                        resolution=f"{c.kind}: {c.winner.rule} wins (written later)",
+                    )
                 )
-            )
         return result
 
     def publish(self, result: TickResult, values: dict, now: float) -> None:
@@ -118,6 +234,7 @@ class AdaptationProcess:
                 changed=result.changed,
                 cause=cause,
                 rejected=[f"{r.rule}: {r.action}: {r.reason}" for r in result.rejected],
+                fence=self.fence,
             )
         )
         self.last_sent = now
@@ -135,29 +252,45 @@ class AdaptationProcess:
         if self.publisher is not None:
             self.publisher.put(_SEL.encode(msg))
 
-    # ---- lifecycle ---------------------------------------------------------------------
-    def run(self, *, install_signals: bool = True) -> int:
-        if install_signals:
-            self.loop.install_signals()
+    # ---- engine hooks ------------------------------------------------------------------
+    def declare(self, session: zenoh.Session) -> list[Any]:
         self.viz = open_logger(self.name)
-        session = open_session(self.bus)
-        try:
-            self.publisher = session.declare_publisher(
-                self.keys.selection, congestion_control=zenoh.CongestionControl.BLOCK, express=True
-            )
-            entities = [
-                session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
-                session.liveliness().declare_token(self.keys.alive(self.host, self.name)),
-            ]
-            self.evaluate()  # the initial selection, before any measurement
-            self.loop.run(lambda _now: self.evaluate(), self.tick_period)
-            del entities
-            return 0
-        finally:
-            self.publisher = None
-            session.close()
-            if self.viz:
-                self.viz.close()
+        self.publisher = session.declare_publisher(
+            self.keys.selection,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+            express=True,
+        )
+        return [
+            self.publisher,
+            session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
+            session.declare_subscriber(self.keys.selection, self._on_selection),
+            session.declare_subscriber(self.keys.state("resolution"), self._on_state),
+        ]
+
+    def on_leadership(self, leading: bool) -> None:
+        if leading:
+            self.evaluate(force=True)  # the system learns the new leader's fence at once
+
+    def tick(self, now: float) -> None:
+        self.evaluate()
+        self.publish_status()
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "selection": sorted(self.engine.selection),
+            "cv": self.engine.cv,
+            "seq": self.seq,
+            "resumed": self.resumed,
+        }
+
+    def extra_counters(self) -> dict[str, int]:
+        return {"selections": self.seq}
+
+    def stopping(self) -> None:
+        self.publisher = None
+        if self.viz:
+            self.viz.close()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -40,7 +40,7 @@ import msgspec
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.messages import NodeSpec, PortSpec
+from rra_agent.bus.messages import NodeSpec, ParamDecl, PortSpec
 from rra_agent.core import resolution as r
 from rra_agent.errors import RraError
 from rra_agent.models.resolution import Replacement
@@ -123,8 +123,10 @@ def spec_for(
     default_host: str,
     active: bool = True,
     state: Any = None,
+    path: tuple[str, ...] = (),
 ) -> NodeSpec:
-    """The `NodeSpec` that runs component ``c`` with the given wiring (topics -> keys)."""
+    """The `NodeSpec` that runs component ``c`` with the given wiring (topics -> keys);
+    ``path``: folders its implementation is imported from first (the system package's)."""
     ports: dict[str, PortSpec] = {}
     for p in c.ports:
         if p.direction == "publish":
@@ -144,6 +146,9 @@ def spec_for(
         ports=ports,
         active=active,
         state=state,
+        decl={k: ParamDecl(type=p.type, min=p.min, max=p.max) for k, p in c.parameters.items()},
+        supervision=c.supervision,
+        path=list(path),
     )
 
 
@@ -201,9 +206,11 @@ class Executor:
         replacement: Replacement,
         *,
         default_host: str,
+        path: tuple[str, ...] = (),
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.actuator = actuator
+        self.path = path
         self.keys = keys
         self.replacement = replacement
         self.default_host = default_host
@@ -276,6 +283,7 @@ class Executor:
             dict(s.inputs),
             dict(s.outputs),
             default_host=self.default_host,
+            path=self.path,
             **kw,
         )
 

@@ -6,13 +6,21 @@ interprets the model instead: it subscribes to every source interface the measur
 `rra_agent.core.context.ContextMonitor`, and publishes each Context Dependent Measurement on
 ``rra/<system>/ctx/<name>`` with its computation time and the send times of its sources.
 Malformed samples are dropped and counted.
+
+Overload: the Zenoh callback only keeps the newest sample of each source; the main loop
+computes from those (latest-value coalescing: both synchronisation policies only ever use
+the newest sample of each source). A flood of samples on one source costs the others
+nothing but a dictionary write per sample, and is counted (``coalesced``).
+
+Replicas: every replica computes every measurement (a hot standby); only the leader of the
+``monitor`` role publishes. Every replica answers a query on ``rra/<system>/ctx/*`` with the
+newest value of each measurement, so a restarted Adaptation Engine resumes from them.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -21,12 +29,11 @@ import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.keys import Keys
-from rra_agent.bus.loop import MainLoop
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.counters import too_large
 from rra_agent.core.context import ContextMonitor
 from rra_agent.core.resolution import topic_of
 from rra_agent.deployment import Deployment
+from rra_agent.engines.base import EngineProcess
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
 from rra_agent.node import decode_data
@@ -79,74 +86,109 @@ def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
     return out
 
 
-class MonitorProcess:
+class MonitorProcess(EngineProcess):
+    """The Context Monitor (one replica of the ``monitor`` role)."""
+
+    role = NAME
+
     def __init__(self, dep: Deployment, bus: BusConfig, *, host: str = "local", name: str = NAME):
-        self.dep = dep
-        self.bus = bus
-        self.host = host
-        self.name = name
-        self.keys = Keys(dep.system)
+        super().__init__(dep, bus, host=host, name=name)
         self.core = ContextMonitor(dep.package.measurements, measurement_functions(dep))
-        self.loop = MainLoop()
-        self.lock = threading.Lock()
-        self.dropped = 0
         self.published = 0
         self.publishers: dict[str, zenoh.Publisher] = {}
+        #: The newest measurement of each name (answered to a restarted Adaptation Engine).
+        self.latest: dict[str, m.Measurement] = {}
+        #: Samples waiting to be processed: the newest per source (older ones coalesced).
+        self._pending: dict[str, tuple[bytes, float]] = {}
+        self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
 
     def source_key(self, source: str) -> str:
         ep = parse_endpoint(source)
         return self.keys.data(topic_of(self.dep.package.system, ep.component, ep.port))
 
+    # ---- bus (Zenoh thread): keep the newest sample per source, nothing else ---------------
     def _on_sample(self, source: str) -> Callable[[zenoh.Sample], None]:
         def callback(sample: zenoh.Sample) -> None:
-            try:
-                data = decode_data(sample.payload.to_bytes())
-            except ValueError:
-                with self.lock:
-                    self.dropped += 1
+            raw = sample.payload.to_bytes()
+            if too_large("data", len(raw)):
+                self.drop("too_large", f"{len(raw)} bytes on {source}")
                 return
             att = sample.attachment
             stamp = m.unpack_stamp(att.to_bytes() if att else None) or time.time()
             with self.lock:
-                computed = self.core.on_sample(source, data, stamp)
-                for c in computed:
-                    msg = m.Measurement(
-                        name=c.name, value=c.value, stamp=time.time(), sources=c.sources
-                    )
-                    self.publishers[c.name].put(_CTX.encode(msg))
-                    self.published += 1
-                    if self.viz:
-                        self.viz.measurement(c.name, c.value, msg.stamp)
+                self.counters.received += 1
+                if source in self._pending:
+                    self.counters.bump("coalesced")
+                self._pending[source] = (raw, stamp)
+                schedule, self._scheduled = not self._scheduled, True
+            if schedule and not self.loop.post(self._process):
+                with self.lock:
+                    self._scheduled = False
 
         return callback
 
-    def run(self, *, install_signals: bool = True) -> int:
-        if install_signals:
-            self.loop.install_signals()
-        self.viz = open_logger(self.name)
-        session = open_session(self.bus)
-        try:
-            for meas in self.dep.package.measurements.measurements:
-                self.publishers[meas.name] = session.declare_publisher(
-                    self.keys.ctx(meas.name),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                    express=True,
+    def _on_latest(self, query: zenoh.Query) -> None:
+        with self.lock:
+            latest = list(self.latest.values())
+        for msg in latest:
+            query.reply(self.keys.ctx(msg.name), _CTX.encode(msg))
+
+    # ---- computing (main thread) -----------------------------------------------------------
+    def _process(self) -> None:
+        with self.lock:
+            batch, self._pending = self._pending, {}
+            self._scheduled = False
+        for source, (raw, stamp) in batch.items():
+            try:
+                data = decode_data(raw)
+            except ValueError as e:
+                self.drop("malformed", f"sample on {source}: {e}")
+                continue
+            for c in self.core.on_sample(source, data, stamp):
+                self._emit(
+                    m.Measurement(name=c.name, value=c.value, stamp=time.time(), sources=c.sources)
                 )
-            entities = [
-                session.declare_subscriber(self.source_key(src), self._on_sample(src))
-                for src in self.core.sources
-            ]
-            entities.append(
-                session.liveliness().declare_token(self.keys.alive(self.host, self.name))
+
+    def _emit(self, msg: m.Measurement) -> None:
+        with self.lock:
+            self.latest[msg.name] = msg
+        if not self.leading:
+            return  # a hot standby computes everything, publishes nothing
+        self.publishers[msg.name].put(_CTX.encode(msg))
+        self.published += 1
+        if self.viz:
+            self.viz.measurement(msg.name, msg.value, msg.stamp)
+
+    def extra_counters(self) -> dict[str, int]:
+        return {"published": self.published, "failures": sum(self.core.failures.values())}
+
+    # ---- lifecycle ---------------------------------------------------------------------
+    def declare(self, session: zenoh.Session) -> list[Any]:
+        self.viz = open_logger(self.name)
+        for meas in self.dep.package.measurements.measurements:
+            self.publishers[meas.name] = session.declare_publisher(
+                self.keys.ctx(meas.name),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.INTERACTIVE_HIGH,
+                express=True,
             )
-            self.loop.run()
-            del entities
-            return 0
-        finally:
-            session.close()
-            if self.viz:
-                self.viz.close()
+        entities: list[Any] = [
+            session.declare_subscriber(self.source_key(src), self._on_sample(src))
+            for src in self.core.sources
+        ]
+        entities.append(session.declare_queryable(self.keys.ctx_all, self._on_latest))
+        return entities
+
+    def status(self) -> dict[str, Any]:
+        return {"measurements": {n: msg.value for n, msg in self.latest.items()}}
+
+    def tick(self, now: float) -> None:
+        self.publish_status()
+
+    def stopping(self) -> None:
+        if self.viz:
+            self.viz.close()
 
 
 def main(argv: list[str] | None = None) -> int:

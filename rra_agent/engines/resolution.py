@@ -1,27 +1,39 @@
 """The Run-time Resolution Engine process (paper Sec. III-E).
 
-It holds the Run-time Configured System Model. At start it deploys the Deployment-time
-Configured System Model with the default run-time selection (and pre-starts the ``standby``
-replacements, inactive); then, for each new run-time selection the Adaptation Engine
-publishes on ``rra/<system>/selection``, it computes the target model (the configured model
-plus the Run-time Resolution Model's transformations for the selected features, CV values
-included), diffs it against the current model, and executes the plan transactionally
-(`rra_agent.engines.executor`). Every plan becomes an `AdaptationEvent` (cause, steps,
-outcome, phase durations), published and written to ``<run-dir>/events.jsonl`` together with
-the host agents' `NodeState` transitions.
+It holds the Run-time Configured System Model: the run-time selection, the Continuous
+Variability values and the parameters operators set (``rra param``). That model is the
+*desired state*; the host agents report the observed one.
 
-Failed adaptations are rolled back and not retried for the same selection before
-``retry_after`` seconds. Selections arriving during an execution are coalesced: only the
-newest is acted on next. On exit the engine leaves the nodes running: the host agents own
-them, and a restarted engine can take over (``rra up`` stops everything through the host
-agent). Status (selection, CV values, nodes) is served on ``rra/<system>/engine/resolution/ctl``.
+- For each new run-time selection the Adaptation Engine leader publishes on
+  ``rra/<system>/selection`` it checks the selection (its fence, every feature known and
+  selectable, CV values clamped into their bounds and the active NFRs), computes the target
+  model (the configured model plus the Run-time Resolution Model's transformations for the
+  selected features, CV values and operators' parameters included), diffs it against the
+  current model and executes the plan transactionally (`rra_agent.engines.executor`).
+- A reconcile loop (`rra_agent.engines.reconcile`) compares desired and observed state
+  every ``reconcile_period`` and whenever a host reports a change, and starts, re-wires and
+  re-parameterises what differs, or records a failed adaptation with an event.
+- Operators' parameter values are checked against their declarations, applied to the
+  running node and kept in the model, so a node restarted anywhere comes back with them.
+
+Replicas (``rra up`` starts two): the leader acts and publishes its state on
+``rra/<system>/state/resolution`` after every change (`EngineState`); a standby mirrors it
+and the selections, and takes over within milliseconds when the leader dies: it makes its
+fence known to every host agent and node (`Claim`), continues from the mirrored model,
+applies a newer selection if there is one, and reconciles. Every request carries the
+leader's fence, so a leader that was frozen and resumes cannot act once its successor has.
+
+Every plan becomes an `AdaptationEvent` (cause, steps, outcome, phase durations, the fence
+and the selection's ``seq``), published and written to ``<run-dir>/events.jsonl`` with the
+host agents' `NodeState` transitions. On exit the engine leaves the nodes running: the host
+agents own them. Status (selection, CV values, desired and observed nodes) is served on
+``rra/<system>/engine/resolution/ctl`` by the leader and on ``engine/<replica>/ctl``.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -30,20 +42,20 @@ import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.keys import Keys
-from rra_agent.bus.loop import MainLoop
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.counters import too_large
 from rra_agent.core import resolution as r
-from rra_agent.core.features import default_runtime_selection
+from rra_agent.core.election import Term, newer
+from rra_agent.core.features import check_selection, default_runtime_selection
+from rra_agent.core.rules import clamp_cv
 from rra_agent.deployment import Deployment
 from rra_agent.engines.actuator import ZenohActuator
-from rra_agent.engines.adoption import managed_parameters, observe, takeover_plan
+from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
 from rra_agent.engines.executor import Executor, Outcome, spec_for
+from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.errors import RraError
-from rra_agent.models.system import Component, SystemModel
+from rra_agent.models.system import Component, ParamValue, SystemModel
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
@@ -51,11 +63,14 @@ NAME = "resolution"
 #: emulate a slower adaptation pipeline such as the paper's 0.5 s.
 EMULATED_DELAY = float(os.environ.get("RRA_EMULATED_SWAP_DELAY", "0") or 0)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
-_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
-_REPLY = m.Codec[m.Reply](m.Reply)
+_EVT = m.Codec[m.EventMessage](m.EventMessage)
+_STATE = m.Codec[m.StateMessage](m.StateMessage)
 
 
-class ResolutionEngine:
+class ResolutionEngine(EngineProcess):
+    role = NAME
+    tick_period = 0.1
+
     def __init__(
         self,
         dep: Deployment,
@@ -66,32 +81,43 @@ class ResolutionEngine:
         run_dir: Path | None = None,
         retry_after: float = 5.0,
         start_timeout: float = 15.0,
+        reconcile_period: float = 1.0,
     ) -> None:
-        self.dep = dep
-        self.bus = bus
-        self.host = host
-        self.name = name
-        self.keys = Keys(dep.system)
+        super().__init__(dep, bus, host=host, name=name)
         self.run_dir = run_dir
         self.retry_after = retry_after
         self.start_timeout = start_timeout
-        self.loop = MainLoop()
+        self.reconcile_period = reconcile_period
         fm = dep.package.features
+        # ---- the Run-time Configured System Model (the desired state) ----
         self.selection = default_runtime_selection(fm, dep.selection)
         self.cv: dict[str, float] = dep.initial_cv()
+        self.overrides: dict[str, dict[str, ParamValue]] = {}
         self.current = msgspec.structs.replace(dep.configured, components=[], connections=[])
-        self.pending: m.Selection | None = None
+        self.applied = 0
+        self.selection_fence: Term | None = None
+        self.version = 0
+        # ---- what this replica knows of the running system ----
+        self.observed: dict[str, m.NodeState] = {}
+        self.unreachable: set[str] = set()
+        #: Nodes whose live configuration is known to match: name -> pid.
+        self.verified: dict[str, int] = {}
+        self.deployed = False
+        self.mirror: m.EngineState | None = None
+        self.latest: m.Selection | None = None
         self.failed: tuple[frozenset[str], tuple, float] | None = None
+        self._next_reconcile = 0.0
+        self._reconcile_soon = False
         self.seq = 0
-        self.dropped = 0
-        self._status: dict[str, Any] = {}
-        self._lock = threading.Lock()
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
+        self.sink: EventSink | None = None
+        self._state_pub: zenoh.Publisher | None = None
 
     # ---- the model side (pure, on the main thread) ---------------------------------------
     def target(self, selection: frozenset[str], cv: dict[str, float]) -> SystemModel:
         pkg = self.dep.package
-        return r.resolve_runtime(self.dep.configured, pkg.runtime, pkg.features, selection, cv)
+        model = r.resolve_runtime(self.dep.configured, pkg.runtime, pkg.features, selection, cv)
+        return r.with_parameters(model, self.overrides)
 
     def standby_specs(self, target: SystemModel) -> list[m.NodeSpec]:
         """Run-time components with the ``standby`` strategy not in ``target``: pre-start
@@ -100,45 +126,178 @@ class ResolutionEngine:
         rep = self.dep.package.runtime.replacement
         standby = [
             c
-            for c in self.dep.configured.components
+            for c in r.with_parameters(self.dep.configured, self.overrides).components
             if c.name not in running and rep.strategy_for(c.name) == "standby"
         ]
         return self._specs(self.dep.configured, standby)
 
+    def _specs(self, model: SystemModel, components: list[Component]) -> list[m.NodeSpec]:
+        """The specs that run ``components`` wired as ``model`` connects them."""
+        subs = r.subscriptions(model)
+        path = (str(self.dep.package.root),)
+        return [
+            spec_for(self.keys, c, **r.wiring(c, subs), default_host=self.host, path=path)
+            for c in components
+        ]
+
+    @property
+    def hosts(self) -> list[str]:
+        return sorted({c.host or self.host for c in self.dep.configured.components})
+
     # ---- bus callbacks (Zenoh thread) ----------------------------------------------------
     def _on_selection(self, sample: zenoh.Sample) -> None:
-        try:
-            msg = _SEL.decode(sample.payload.to_bytes())
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            self.dropped += 1
+        raw = sample.payload.to_bytes()
+        if too_large("selection", len(raw)):
+            self.drop("too_large", f"selection of {len(raw)} bytes")
             return
-        if isinstance(msg, m.Selection):
-            with self._lock:
-                self.pending = msg
-            self.loop.post(self._take_pending)
-
-    def _on_status(self, query: zenoh.Query) -> None:
-        payload = query.payload
         try:
-            _REQ.decode(payload.to_bytes() if payload is not None else b"")
-            with self._lock:
-                reply: m.Reply = m.Ok(result=dict(self._status))
+            msg = _SEL.decode(raw)
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.dropped += 1
-            reply = m.Err(message=f"malformed request: {e}", code="malformed")
-        query.reply(query.key_expr, _REPLY.encode(reply))
+            self.drop("malformed", f"selection: {e}")
+            return
+        self.counters.received += 1
+        if isinstance(msg, m.Selection):
+            with self.lock:
+                self.latest = msg
+            self.loop.post(self._take_latest)
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        raw = sample.payload.to_bytes()
+        if too_large("state", len(raw)):
+            return
+        try:
+            state = _STATE.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.drop("malformed", f"engine state: {e}")
+            return
+        if state.fence.leader != self.name:
+            self.loop.post(lambda: self._mirror(state))
+
+    def _on_event(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = _EVT.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        if isinstance(msg, m.NodeState):
+            self.loop.post(lambda: self._node_state(msg))
+
+    def _on_host(self, sample: zenoh.Sample) -> None:
+        """A host agent appeared (or came back) or went away: reconcile soon."""
+        host = str(sample.key_expr).rsplit("/", 1)[-1]
+        alive = sample.kind == zenoh.SampleKind.PUT
+
+        def seen() -> None:
+            (self.unreachable.discard if alive else self.unreachable.add)(host)
+            self._reconcile_soon = True
+
+        self.loop.post(seen)
+
+    # ---- following the leader (main thread) ----------------------------------------------
+    def _mirror(self, state: m.EngineState) -> None:
+        if self.election is not None:
+            self.election.observe_epoch(state.fence.epoch)
+        if self.leading:
+            return
+        self.mirror = state
+        self.selection, self.cv = frozenset(state.selection), dict(state.cv)
+        self.overrides = {n: dict(v) for n, v in state.overrides.items()}
+        self.applied = state.applied
+        if state.selection_fence is not None:
+            self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
+        self.publish_status()
+
+    def _node_state(self, st: m.NodeState) -> None:
+        if self.leading and self.sink is not None:
+            self.sink.record(st)
+            if self.viz:
+                self.viz.node_state(st)
+        if st.node in self.verified and st.pid != self.verified[st.node]:
+            del self.verified[st.node]
+        prev = self.observed.get(st.node)
+        self.observed[st.node] = st
+        if st.state in ("STOPPED", "EXITED", "FATAL") or (prev and prev.pid != st.pid):
+            self._reconcile_soon = True
+
+    # ---- taking over -------------------------------------------------------------------
+    def on_leadership(self, leading: bool) -> None:
+        self.actuator.fence = self.fence if leading else None
+        if not leading:
+            return
+        fence = self.fence
+        assert fence is not None and self.election is not None
+        names = [s.name for s in [*self.executor.running.values(), *self.executor.standby.values()]]
+        if self.mirror is not None:
+            names += [s.name for s in [*self.mirror.running, *self.mirror.standby]]
+        highest = self.actuator.claim(fence, self.hosts, sorted(set(names)))
+        if highest > fence.epoch:  # receivers know a newer leader: claim again above it
+            self.election.observe_epoch(highest)
+            return
+        self._event("takeover", f"{self.name} leads (epoch {fence.epoch})", None)
+        if self.mirror is not None:
+            self._adopt_mirror(self.mirror)
+        else:
+            self._restore()
+        self._take_latest()
+        self._reconcile_soon = True
+        self.publish_status()
+
+    def _adopt_mirror(self, state: m.EngineState) -> None:
+        """Continue from the state the previous leader published."""
+        self.executor.running = {s.name: s for s in state.running}
+        self.executor.standby = {s.name: s for s in state.standby}
+        try:
+            self.current = self.target(self.selection, self.cv)
+        except RraError as e:
+            self._event("takeover", f"cannot rebuild the model: {e}", None, level="error")
+            return
+        self.version = state.version
+        self.deployed = True
 
     # ---- adaptation (main thread) --------------------------------------------------------
-    def _take_pending(self) -> None:
-        with self._lock:
-            msg, self.pending = self.pending, None
-        if msg is not None:
+    def _take_latest(self) -> None:
+        with self.lock:
+            msg = self.latest
+        if msg is not None and self.leading and self.deployed and msg.seq != self.applied:
             self.adapt(msg)
 
+    def check(self, msg: m.Selection) -> tuple[frozenset[str], dict[str, float]] | None:
+        """The selection and CV values to apply, or None (refused and counted)."""
+        fence = msg.fence
+        if fence is None:
+            self.refuse("selection", f"selection {msg.seq} carries no Adaptation Engine fence")
+            return None
+        term = (fence.epoch, fence.leader)
+        if not newer(term, self.selection_fence):
+            self.refuse(
+                "stale_fence",
+                f"selection {msg.seq} from {fence.leader} (epoch {fence.epoch}): "
+                f"a newer Adaptation Engine leader has decided since",
+            )
+            return None
+        fm, deployment = self.dep.package.features, self.dep.selection
+        runtime = set(fm.runtime_features())
+        unknown = sorted(set(msg.features) - runtime - deployment)
+        problems = [f"unknown or not run-time feature(s): {', '.join(unknown)}"] if unknown else []
+        selection = frozenset(msg.features) - deployment
+        problems += [p.message for p in check_selection(fm, deployment | selection)]
+        cv, bad_cv = clamp_cv(fm, deployment | selection, msg.cv)
+        if bad_cv:
+            problems.append(f"no such CV attribute (or not a number): {', '.join(sorted(bad_cv))}")
+        if problems:
+            self.refuse(
+                "selection", f"selection {msg.seq} from {fence.leader}: {'; '.join(problems)}"
+            )
+            return None
+        self.selection_fence = term
+        return selection, {**self.cv, **cv}
+
     def adapt(self, msg: m.Selection) -> Outcome | None:
-        selection = frozenset(msg.features)
-        cv = {**self.cv, **msg.cv}
+        checked = self.check(msg)
+        if checked is None:
+            return None
+        selection, cv = checked
         if selection == self.selection and cv == self.cv:
+            self.applied = msg.seq
             return None  # a heartbeat, or nothing this engine acts on
         key = (selection, tuple(sorted(cv.items())))
         now = time.monotonic()
@@ -164,27 +323,18 @@ class ResolutionEngine:
             time.sleep(EMULATED_DELAY)  # benchmarks only: a slower pipeline, like the paper's
         outcome = self.executor.execute(plan)
         t_end = time.perf_counter()
-        reads = [f.reads.values() for f in msg.cause]
-        stamps = [t for rs in reads for t in rs]
-        durations = {
-            "decide": max(0.0, msg.stamp - max(stamps)) if stamps else 0.0,
-            "deliver": max(0.0, t_recv - msg.stamp),
-            "plan": t_plan - t0,
-            "execute": t_end - t_plan,
-        }
-        if stamps:
-            durations["total"] = max(0.0, t_recv + (t_end - t0) - min(stamps))
-        if outcome.first_switch is not None:
-            durations["switch"] = outcome.first_switch
+        durations = _durations(msg, t_recv, t0, t_plan, t_end, outcome)
         if outcome.ok:
             self.current, self.selection, self.cv, self.failed = target, selection, cv, None
-            self._persist()
+            self.applied = msg.seq
+            self._changed()
             text = f"applied selection {sorted(selection)}" + (
                 f", {len(plan.steps)} step(s)" if plan.steps else " (no change to the system)"
             )
             self._event("adaptation", text, msg, outcome="ok", plan=outcome, durations=durations)
         else:
             self.failed = (*key, now)
+            self._changed()
             state = "rolled back" if outcome.rolled_back else "ROLLBACK FAILED"
             self._event(
                 "adaptation",
@@ -195,9 +345,241 @@ class ResolutionEngine:
                 plan=outcome,
                 durations=durations,
             )
-        self._publish_status()
+            self._reconcile_soon = True
         return outcome
 
+    # ---- operators' parameters -----------------------------------------------------------
+    def serve(self, request: m.EngineRequest) -> m.Reply:
+        match request:
+            case m.SetParam(node=node, params=params, reset=reset):
+                if not self.leading:
+                    return m.Err(message=f"{self.name} does not lead", code="not_leader")
+                return self.set_params(node, params, reset)
+            case m.GetState():
+                return m.Ok(result=msgspec.to_builtins(self.engine_state()))
+        return super().serve(request)
+
+    def set_params(self, node: str, params: dict[str, Any], reset: list[str]) -> m.Reply:
+        component = next((c for c in self.dep.configured.components if c.name == node), None)
+        if component is None:
+            self.refuse("param", f"no component {node!r}")
+            return m.Err(
+                message=f"no component {node!r} in system {self.dep.system}", code="unknown"
+            )
+        try:
+            values = r.check_parameters(self.dep.configured, node, params)
+            unknown = [n for n in reset if n not in component.parameters]
+            if unknown:
+                raise RraError(f"{node} has no parameter(s) {', '.join(unknown)}")
+        except RraError as e:
+            self.refuse("param", str(e))
+            return m.Err(message=str(e), code="refused")
+        before = {n: dict(v) for n, v in self.overrides.items()}
+        mine = self.overrides.setdefault(node, {})
+        for name in reset:
+            mine.pop(name, None)
+        mine.update(values)
+        if not mine:
+            del self.overrides[node]
+        outcome = self._apply_overrides(node)
+        if outcome is not None and not outcome.ok:
+            self.overrides = before
+            return m.Err(message=f"could not set {node}: {outcome.error}", code="failed")
+        self._changed()
+        self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
+        return m.Ok(
+            result={"node": node, "params": values, "overrides": dict(self.overrides.get(node, {}))}
+        )
+
+    def _apply_overrides(self, node: str) -> Outcome | None:
+        """Push the changed desired parameters to the running (or standby) node."""
+        try:
+            target = self.target(self.selection, self.cv)
+        except RraError as e:
+            return Outcome(False, error=str(e))
+        if node in self.executor.standby:
+            spec = next((s for s in self.standby_specs(target) if s.name == node), None)
+            if spec is not None:
+                plan = r.Plan(steps=(r.SetParameters(component=node, values=dict(spec.params)),))
+                self.executor.running[node] = self.executor.standby.pop(node)
+                try:
+                    return self.executor.execute(plan)
+                finally:
+                    self.executor.standby[node] = self.executor.running.pop(node)
+            return None
+        outcome = self.executor.execute(r.diff(self.current, target))
+        if outcome.ok:
+            self.current = target
+        return outcome
+
+    # ---- reconciliation ------------------------------------------------------------------
+    def reconcile(self, reason: str = "periodic") -> Outcome | None:
+        """Make the running system match the desired model (see `rra_agent.engines.reconcile`)."""
+        try:
+            target = self.target(self.selection, self.cv)
+        except RraError as e:
+            self._event("reconcile", f"cannot resolve the model: {e}", None, level="error")
+            return None
+        known = {
+            n: (pid, spec)
+            for n, pid in self.verified.items()
+            for spec in [self.executor.running.get(n) or self.executor.standby.get(n)]
+            if spec is not None
+        }
+        expected = {s.name: s for s in self._specs(target, target.components)}
+        standby_specs = self.standby_specs(target)
+        templates = {
+            **{s.name: s for s in self._specs(self.dep.configured, self.dep.configured.components)},
+            **{s.name: s for s in standby_specs},
+            **expected,
+        }
+        observed = observe(self.actuator.client, self.hosts, templates, known=known)
+        self.unreachable = observed.unreachable
+        self.observed.update(observed.states)
+        candidates = {s.name for s in standby_specs}
+        plan, running, standby = takeover_plan(observed, expected, target, candidates)
+        missing = [
+            s
+            for s in standby_specs
+            if s.name not in standby and s.name not in observed.pending
+            and s.host not in observed.unreachable
+        ]  # fmt: skip
+        first = not self.deployed
+        self.executor.running, self.executor.standby = running, standby
+        if not plan.steps and not missing:
+            self.verified.update(observed.described)
+            self.current, self.deployed = target, True
+            self._update_hosts(expected, standby, observed)
+            if first:
+                self._changed()
+                self._event(
+                    "adopt",
+                    f"adopted {len(observed.nodes)} running node(s), nothing to change",
+                    None,
+                    outcome="ok",
+                )
+            return None
+        outcome = self.executor.execute(plan)
+        if outcome.ok and missing:
+            pre = self.executor.prestart_standby(missing)
+            outcome.records.extend(pre.records)
+            if not pre.ok:
+                outcome.ok, outcome.error = False, pre.error
+        if outcome.ok:
+            self.current, self.deployed = target, True
+            self.verified.update(observed.described)
+        self._changed()
+        kind = "deploy" if first and not observed.nodes else ("adopt" if first else "reconcile")
+        what = (
+            f"{len(self.executor.running)} node(s) running, {len(self.executor.standby)} on standby"
+        )
+        self._event(
+            kind,
+            f"{what}, {len(plan.steps) + len(missing)} step(s) ({reason})"
+            if outcome.ok
+            else f"{kind} failed: {outcome.error}",
+            None,
+            level="info" if outcome.ok else "error",
+            outcome="ok" if outcome.ok else "failed",
+            plan=outcome,
+            durations={"execute": outcome.seconds},
+        )
+        return outcome
+
+    def _update_hosts(self, expected, standby, observed) -> None:
+        """Tell a host agent the spec it should restart a node with, where its copy differs."""
+        stale = [
+            spec
+            for name, spec in [*expected.items(), *standby.items()]
+            if name in observed.states
+            and observed.states[name].digest not in ("", m.spec_digest(spec))
+        ]
+        if stale:
+            self.actuator._update(stale)
+
+    # ---- state -----------------------------------------------------------------------
+    def engine_state(self) -> m.EngineState:
+        fence = self.fence or (self.mirror.fence if self.mirror else m.Fence(epoch=0, leader=""))
+        sel = self.selection_fence
+        return m.EngineState(
+            fence=fence,
+            version=self.version,
+            selection=sorted(self.selection),
+            cv=dict(self.cv),
+            overrides={n: dict(v) for n, v in self.overrides.items()},
+            applied=self.applied,
+            selection_fence=m.Fence(epoch=sel[0], leader=sel[1]) if sel else None,
+            running=list(self.executor.running.values()),
+            standby=list(self.executor.standby.values()),
+        )
+
+    def _changed(self) -> None:
+        """The desired state changed: publish it (standbys mirror it), persist it."""
+        self.version += 1
+        state = self.engine_state()
+        if self.leading and self._state_pub is not None:
+            self._state_pub.put(_STATE.encode(state))
+        self._persist(state)
+        self.publish_status()
+
+    @property
+    def state_file(self) -> Path | None:
+        return self.run_dir / f"{NAME}-state.json" if self.run_dir else None
+
+    def _persist(self, state: m.EngineState) -> None:
+        if self.state_file is not None:
+            tmp = self.state_file.with_suffix(f".{self.name}.tmp")
+            tmp.write_bytes(msgspec.json.encode(state))
+            tmp.replace(self.state_file)
+
+    def _saved_state(self) -> m.EngineState | None:
+        if self.state_file is None or not self.state_file.exists():
+            return None
+        try:
+            return msgspec.json.decode(self.state_file.read_bytes(), type=m.EngineState)
+        except (OSError, msgspec.DecodeError, msgspec.ValidationError) as e:
+            print(f"rra {self.name}: ignoring {self.state_file}: {e}", file=sys.stderr)
+            return None
+
+    def _restore(self) -> None:
+        """No leader to continue from: the state saved before (a restart within a run)."""
+        state = self._saved_state()
+        if state is None:
+            return
+        self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
+        self.overrides = {n: dict(v) for n, v in state.overrides.items()}
+        self.applied = state.applied
+        if state.selection_fence is not None:
+            self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
+
+    def status(self) -> dict[str, Any]:
+        running, standby = self.executor.running, self.executor.standby
+        desired = {
+            n: {"host": s.host, "implementation": str(s.implementation), "active": s.active,
+                "standby": n in standby}
+            for n, s in [*running.items(), *standby.items()]
+        }  # fmt: skip
+        return {
+            "system": self.dep.system,
+            "deployment": sorted(self.dep.selection),
+            "selection": sorted(self.selection),
+            "cv": dict(self.cv),
+            "overrides": {n: dict(v) for n, v in self.overrides.items()},
+            "desired": desired,
+            "running": {n: d for n, d in desired.items() if not d["standby"]},
+            "standby": sorted(standby),
+            "observed": {
+                n: {"state": st.state, "pid": st.pid, "host": st.host}
+                for n, st in self.observed.items()
+            },
+            "unreachable": sorted(self.unreachable),
+            "applied": self.applied,
+            "seq": self.seq,
+            "deployed": self.deployed,
+            "failed": bool(self.failed),
+        }
+
+    # ---- events ------------------------------------------------------------------------
     def _event(
         self,
         kind: str,
@@ -221,174 +603,101 @@ class ResolutionEngine:
             outcome=outcome,  # type: ignore[arg-type]
             durations=durations or {},
             seq=self.seq,
+            fence=self.fence,
+            selection=msg.seq if msg else None,
         )
-        self.sink.emit(event)
+        if self.sink is not None:
+            self.sink.emit(event, publish=self.leading)
         if self.viz:
             self.viz.event(event)
 
-    def _node_state(self, st: m.NodeState) -> None:
-        self.sink.record(st)
-        if self.viz:
-            self.viz.node_state(st)
-
-    def _publish_status(self) -> None:
-        status = {
-            "system": self.dep.system,
-            "deployment": sorted(self.dep.selection),
-            "selection": sorted(self.selection),
-            "cv": dict(self.cv),
-            "running": {
-                n: {"host": s.host, "implementation": str(s.implementation), "active": s.active}
-                for n, s in self.executor.running.items()
-            },
-            "standby": sorted(self.executor.standby),
-            "seq": self.seq,
-            "failed": bool(self.failed),
-        }
-        with self._lock:
-            self._status = status
-
     # ---- lifecycle ---------------------------------------------------------------------
-    def deploy(self) -> Outcome:
-        """Make the running system match the target of the current selection: start it from
-        nothing, or take over what already runs (after a restart of this engine)."""
-        target = self.target(self.selection, self.cv)
-        hosts = sorted({c.host or self.host for c in self.dep.configured.components})
-        observed = observe(self.actuator.client, hosts, self.dep.configured)
-        expected = {s.name: s for s in self._specs(target, target.components)}
-        candidates = {s.name for s in self.standby_specs(target)}
-        managed = managed_parameters(self.dep.package.runtime)
-        plan, running, standby = takeover_plan(observed, expected, target, candidates, managed)
-        self.executor.running, self.executor.standby = running, standby
-        outcome = self.executor.execute(plan)
-        if outcome.ok:
-            self.current = target
-            missing = [s for s in self.standby_specs(target) if s.name not in standby]
-            if missing:
-                pre = self.executor.prestart_standby(missing)
-                outcome.records.extend(pre.records)
-                if not pre.ok:
-                    outcome.ok, outcome.error = False, pre.error
-        adopted = len(observed.nodes)
-        what = f"adopted {adopted} running node(s), " if adopted else ""
-        self._event(
-            "adopt" if adopted else "deploy",
-            f"{what}{len(self.executor.running)} node(s) running, "
-            f"{len(self.executor.standby)} on standby, {len(plan.steps)} step(s)"
-            if outcome.ok
-            else f"deployment failed: {outcome.error}",
-            None,
-            level="info" if outcome.ok else "error",
-            outcome="ok" if outcome.ok else "failed",
-            plan=outcome,
-            durations={"execute": outcome.seconds},
-        )
-        if outcome.ok:
-            self._persist()
-        self._publish_status()
-        return outcome
-
-    def _specs(self, model: SystemModel, components: list[Component]) -> list[m.NodeSpec]:
-        """The specs that run ``components`` wired as ``model`` connects them."""
-        subs = r.subscriptions(model)
-        return [
-            spec_for(self.keys, c, **r.wiring(c, subs), default_host=self.host) for c in components
-        ]
-
-    # ---- the applied selection survives a restart of this engine -------------------------
-    @property
-    def state_file(self) -> Path | None:
-        return self.run_dir / f"{self.name}-state.json" if self.run_dir else None
-
-    def _persist(self) -> None:
-        if self.state_file is not None:
-            data = {"selection": sorted(self.selection), "cv": self.cv}
-            tmp = self.state_file.with_suffix(".tmp")
-            tmp.write_bytes(msgspec.json.encode(data))
-            tmp.replace(self.state_file)
-
-    def _restore(self) -> None:
-        """The selection applied before this engine was restarted, if any."""
-        if self.state_file is None or not self.state_file.exists():
-            return
-        try:
-            data = msgspec.json.decode(self.state_file.read_bytes(), type=dict[str, Any])
-            self.selection = frozenset(data["selection"])
-            self.cv = {**self.cv, **data["cv"]}
-        except (msgspec.DecodeError, msgspec.ValidationError, KeyError, TypeError) as e:
-            print(f"rra resolution: ignoring {self.state_file}: {e}", file=sys.stderr)
-
-    def _wait_for_hosts(self, session: zenoh.Session, timeout: float = 30.0) -> None:
-        hosts = {c.host or self.host for c in self.dep.configured.components}
-        for h in sorted(hosts):
-            wait_until(
-                lambda h=h: list(session.liveliness().get(self.keys.host_alive(h), timeout=0.5)),
-                timeout,
-                f"the host agent of {h!r}",
-                interval=0.05,
-            )
-
-    def run(self, *, install_signals: bool = True) -> int:
-        if install_signals:
-            self.loop.install_signals()
+    def declare(self, session: zenoh.Session) -> list[Any]:
         self.viz = open_logger(self.name)
-        session = open_session(self.bus)
-        token = None
         log = self.run_dir / "events.jsonl" if self.run_dir else None
         self.sink = EventSink(session, self.keys.events, log)
-        self.actuator = ZenohActuator(
-            session,
-            self.keys,
-            start_timeout=self.start_timeout,
-            on_node_state=lambda st: self.loop.post(lambda: self._node_state(st)),
-        )
+        self.actuator = ZenohActuator(session, self.keys, start_timeout=self.start_timeout)
         self.executor = Executor(
-            self.actuator, self.keys, self.dep.package.runtime.replacement, default_host=self.host
+            self.actuator,
+            self.keys,
+            self.dep.package.runtime.replacement,
+            default_host=self.host,
+            path=(str(self.dep.package.root),),
         )
-        try:
-            entities = [
-                session.declare_subscriber(self.keys.selection, self._on_selection),
-                session.declare_queryable(self.keys.engine_ctl(self.name), self._on_status),
-            ]
-            self._wait_for_hosts(session)
-            self._restore()
-            outcome = self.deploy()
-            if not outcome.ok:
-                print(f"rra resolution: deployment failed: {outcome.error}", file=sys.stderr)
-                return 1
-            token = session.liveliness().declare_token(self.keys.alive(self.host, self.name))
-            self.loop.run(self._tick, 0.5)
-            del entities
-            return 0
-        finally:
-            if token is not None:
-                token.undeclare()
-            self.actuator.close()
+        self._state_pub = session.declare_publisher(
+            self.keys.state(NAME),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+        )
+        lv = session.liveliness()
+        return [
+            self._state_pub,
+            session.declare_subscriber(self.keys.selection, self._on_selection),
+            session.declare_subscriber(self.keys.state(NAME), self._on_state),
+            session.declare_subscriber(self.keys.events, self._on_event),
+            lv.declare_subscriber(f"{self.keys.prefix}/hostagent/*", self._on_host, history=True),
+        ]
+
+    def starting(self) -> None:
+        """Learn the current leader's state before the election (a standby that starts)."""
+        assert self.session is not None
+        for reply in self.session.get(
+            self.keys.engine_ctl(NAME),
+            payload=m.Codec(m.EngineRequest).encode(m.GetState()),
+            timeout=1.0,
+        ):
+            if reply.ok is None:
+                continue
+            try:
+                answer = m.Codec[m.Reply](m.Reply).decode(reply.ok.payload.to_bytes())
+                if isinstance(answer, m.Ok) and answer.result:
+                    self._mirror(msgspec.convert(answer.result, m.EngineState))
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+
+    def epoch_floor(self) -> int:
+        """Above the epoch of the leader this replica mirrors, or of the saved state."""
+        if self.mirror is not None:
+            return self.mirror.fence.epoch
+        saved = self._saved_state()
+        return saved.fence.epoch if saved is not None else 0
+
+    def tick(self, now: float) -> None:
+        if not self.leading:
+            return
+        if self.failed and now - self.failed[2] >= self.retry_after:
+            self.failed = None  # try the newest selection again
+            self._take_latest()
+        if self._reconcile_soon or now >= self._next_reconcile:
+            reason = "a host reported a change" if self._reconcile_soon else "periodic"
+            self._reconcile_soon = False
+            self._next_reconcile = now + self.reconcile_period
+            self.reconcile(reason if self.deployed else "deployment")
+            self._take_latest()
+
+    def stopping(self) -> None:
+        self.actuator.close()
+        if self.sink is not None:
             self.sink.close()
-            session.close()
-            if self.viz:
-                self.viz.close()
+        if self.viz:
+            self.viz.close()
 
-    def _tick(self, now: float) -> None:
-        """Retry a failed adaptation once ``retry_after`` has passed."""
-        if self.failed and now - self.failed[2] >= self.retry_after and self.pending is None:
-            with self._lock:
-                last = self._last_selection()
-            if last is not None:
-                self.adapt(last)
 
-    def _last_selection(self) -> m.Selection | None:
-        if self.failed is None:
-            return None
-        selection, cv_items, _ = self.failed
-        return m.Selection(
-            seq=0,
-            stamp=time.time(),
-            deployment=sorted(self.dep.selection),
-            features=sorted(selection),
-            cv=dict(cv_items),
-            changed=True,
-        )
+def _durations(
+    msg: m.Selection, t_recv: float, t0: float, t_plan: float, t_end: float, outcome: Outcome
+) -> dict[str, float]:
+    reads = [t for f in msg.cause for t in f.reads.values()]
+    durations = {
+        "decide": max(0.0, msg.stamp - max(reads)) if reads else 0.0,
+        "deliver": max(0.0, t_recv - msg.stamp),
+        "plan": t_plan - t0,
+        "execute": t_end - t_plan,
+    }
+    if reads:
+        durations["total"] = max(0.0, t_recv + (t_end - t0) - min(reads))
+    if outcome.first_switch is not None:
+        durations["switch"] = outcome.first_switch
+    return durations
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -398,6 +707,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = engine_arguments("rra resolution", __doc__)
     parser.add_argument("--retry-after", type=float, default=5.0)
     parser.add_argument("--start-timeout", type=float, default=15.0)
+    parser.add_argument("--reconcile-period", type=float, default=1.0)
     args = parser.parse_args(argv)
     setup = engine_setup(args, NAME)
     if setup is None:
@@ -411,6 +721,7 @@ def main(argv: list[str] | None = None) -> int:
         run_dir=Path(args.run_dir) if args.run_dir else None,
         retry_after=args.retry_after,
         start_timeout=args.start_timeout,
+        reconcile_period=args.reconcile_period,
     )
     return engine.run()
 

@@ -42,6 +42,7 @@ from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.runtime import NoPeer
 from rra_agent.engines.events import read_events
+from rra_agent.errors import RraError
 from rra_agent.host.processes import die_with_parent
 from rra_agent.node import decode_data, encode_data
 from rra_agent.scenario import expectations as x
@@ -377,7 +378,13 @@ class _Run:
         try:
             if step.set_params is not None:
                 sp = step.set_params
-                return _reply(client.node(sp.node, m.SetParams(params=dict(sp.params))))
+                from rra_agent.cli.status import set_params
+
+                try:  # as an operator does: kept in the model, re-applied after restarts
+                    set_params(client, sp.node, dict(sp.params))
+                except RraError as e:
+                    return False, str(e)
+                return True, ""
             if step.publish is not None:
                 publishers[t.key].put(
                     encode_data(step.publish.data), attachment=m.pack_stamp(stamp)

@@ -1,0 +1,244 @@
+"""What the three engine processes share: their session, their replica's election, their
+control endpoints, their heartbeat and a clean shutdown.
+
+Each engine role (``monitor``, ``adaptation``, ``resolution``) may run as several replicas
+(``rra up`` starts two: a leader and a hot standby). A replica
+
+- declares ``engine/<replica>/ctl`` (its own status) and, while it leads,
+  ``engine/<role>/ctl`` (what clients address: ``rra status``, ``rra param``);
+- declares ``node/<replica>/ctl``, the endpoint its host agent probes (``Ping``, ``Stats``);
+- takes part in the role's election (`rra_agent.engines.election`) and is told when it
+  starts or stops leading (`on_leadership`);
+- writes its heartbeat from its main loop and sets the ready flag once it is up.
+
+Status-like requests are answered on the Zenoh thread from a snapshot, so a replica busy
+with a plan still answers probes and ``rra status``; requests that change something run on
+the main loop, after what was posted before them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+from typing import Any
+
+import msgspec
+import zenoh
+
+from rra_agent.bus import messages as m
+from rra_agent.bus.config import BusConfig
+from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
+from rra_agent.bus.keys import Keys
+from rra_agent.bus.loop import MainLoop
+from rra_agent.bus.runtime import beat_period, open_session
+from rra_agent.deployment import Deployment
+from rra_agent.engines.election import Election
+
+_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
+_NODE_REQ = m.Codec[m.NodeRequest](m.NodeRequest)
+_REPLY = m.Codec[m.Reply](m.Reply)
+
+
+class EngineProcess:
+    """Base of the monitor, adaptation and resolution processes (see the module doc)."""
+
+    role: str = ""
+    #: How often ``tick`` runs (seconds).
+    tick_period: float = 0.5
+
+    def __init__(
+        self, dep: Deployment, bus: BusConfig, *, host: str, name: str, heartbeat: float = 4.0
+    ) -> None:
+        self.dep = dep
+        self.bus = bus
+        self.host = host
+        self.name = name
+        self.keys = Keys(dep.system)
+        self.loop = MainLoop(beat_every=beat_period(heartbeat))
+        self.counters = Counters()
+        self.lock = threading.Lock()
+        self._refusals = RateLimitedLog(lambda text: print(f"rra {name}: {text}", flush=True))
+        self.session: zenoh.Session | None = None
+        self.election: Election | None = None
+        self._role_ctl: Any = None
+        self._snapshot: dict[str, Any] = {}
+
+    # ---- hooks for the engines ---------------------------------------------------------
+    def declare(self, session: zenoh.Session) -> list[Any]:
+        """Declare the engine's own subscriptions and publishers; return what to keep."""
+        return []
+
+    def starting(self) -> None:
+        """Before the election: e.g. resume from the system's current state."""
+
+    def epoch_floor(self) -> int:
+        """An epoch the role has used before (e.g. learnt while resuming): claims go above."""
+        return 0
+
+    def on_leadership(self, leading: bool) -> None:
+        """This replica started (True) or stopped (False) leading."""
+
+    def tick(self, now: float) -> None:
+        """Periodic work (every ``tick_period``)."""
+
+    def serve(self, request: m.EngineRequest) -> m.Reply:
+        """A request that changes something (main thread)."""
+        return m.Err(message=f"unsupported request {type(request).__name__}", code="unsupported")
+
+    def status(self) -> dict[str, Any]:
+        """What ``Status`` returns (built on the main thread, see `publish_status`)."""
+        return {}
+
+    def extra_counters(self) -> dict[str, int]:
+        return {}
+
+    # ---- helpers -----------------------------------------------------------------------
+    @property
+    def leading(self) -> bool:
+        return self.election is not None and self.election.leading
+
+    @property
+    def fence(self) -> m.Fence | None:
+        return self.election.fence if self.election is not None else None
+
+    def publish_status(self) -> None:
+        """Refresh the snapshot ``Status`` answers from (call after every change)."""
+        status = {
+            **self.status(),
+            "replica": self.name,
+            "role": self.role,
+            "leading": self.leading,
+            "leader": list(self.election.leader or ()) if self.election else [],
+        }
+        with self.lock:
+            self._snapshot = status
+
+    def stats(self) -> m.ProcessStats:
+        c = self.counters
+        c.extra.update(self.extra_counters())
+        c.extra["refused_busy"] = self.loop.refused
+        c.extra["leading"] = int(self.leading)
+        return c.stats(self.name, self.role, os.getpid())
+
+    def refuse(self, kind: str, detail: str) -> None:
+        """Count a refused sample or request and log it (rate-limited)."""
+        self.counters.rejected += 1
+        self._refusals(f"refused ({kind})", detail)
+
+    def drop(self, kind: str, detail: str) -> None:
+        self.counters.dropped += 1
+        self._refusals(f"dropped ({kind})", detail)
+
+    # ---- control endpoints (Zenoh thread) ----------------------------------------------
+    def _on_engine_query(self, query: zenoh.Query) -> None:
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        if too_large("engine_ctl", len(raw)):
+            self.drop("too_large", f"engine request of {len(raw)} bytes")
+            return self._reply(query, m.Err(message="request too large", code="too_large"))
+        try:
+            req = _REQ.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.drop("malformed", f"engine request: {e}")
+            return self._reply(query, m.Err(message=f"malformed request: {e}", code="malformed"))
+        self.counters.received += 1
+        match req:
+            case m.Status() | m.Describe():
+                with self.lock:
+                    snapshot = dict(self._snapshot)
+                return self._reply(query, m.Ok(result=snapshot))
+            case m.Ping():
+                return self._reply(query, m.Ok(result={"pid": os.getpid(), "name": self.name}))
+            case m.Stats():
+                return self._reply(query, m.Ok(result=self.stats()))
+        if not self.loop.post(lambda: self._reply(query, self._serve(req))):
+            self._reply(query, m.Err(message=f"{self.name} is overloaded", code="busy"))
+        return None
+
+    def _serve(self, req: m.EngineRequest) -> m.Reply:
+        try:
+            return self.serve(req)
+        except Exception as e:  # a bad request must never take the engine down
+            return m.Err(message=f"{type(e).__name__}: {e}", code="error")
+
+    def _on_process_query(self, query: zenoh.Query) -> None:
+        """The host agent's probe (and ``Stats``) on ``node/<replica>/ctl``."""
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            req = _NODE_REQ.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.drop("malformed", f"process request: {e}")
+            return self._reply(query, m.Err(message=f"malformed request: {e}", code="malformed"))
+        match req:
+            case m.Ping():
+                reply: m.Reply = m.Ok(result={"pid": os.getpid(), "name": self.name})
+            case m.Stats():
+                reply = m.Ok(result=self.stats())
+            case _:
+                reply = m.Err(message=f"{self.name} is an engine, not a node", code="unsupported")
+        self._reply(query, reply)
+
+    @staticmethod
+    def _reply(query: zenoh.Query, reply: m.Reply) -> None:
+        query.reply(query.key_expr, _REPLY.encode(reply))
+
+    # ---- leadership --------------------------------------------------------------------
+    def _leadership_changed(self) -> None:
+        leading = self.leading
+        session = self.session
+        if leading and self._role_ctl is None and session is not None:
+            self._role_ctl = session.declare_queryable(
+                self.keys.engine_ctl(self.role), self._on_engine_query
+            )
+        elif not leading and self._role_ctl is not None:
+            with contextlib.suppress(Exception):
+                self._role_ctl.undeclare()
+            self._role_ctl = None
+        self.on_leadership(leading)
+        self.publish_status()
+
+    # ---- the process -------------------------------------------------------------------
+    def run(self, *, install_signals: bool = True) -> int:
+        if install_signals:
+            self.loop.install_signals()
+        self.session = session = open_session(self.bus, wait_connected=True)
+        entities: list[Any] = []
+        try:
+            entities = [
+                session.declare_queryable(self.keys.engine_ctl(self.name), self._on_engine_query),
+                session.declare_queryable(self.keys.node_ctl(self.name), self._on_process_query),
+                *self.declare(session),
+            ]
+            self.starting()
+            self.election = Election(
+                session, self.keys, self.role, self.name, self.loop, self._leadership_changed
+            )
+            self.election.max_epoch = self.epoch_floor()
+            self.election.start()
+            self.publish_status()
+            entities.append(
+                session.liveliness().declare_token(self.keys.alive(self.host, self.name))
+            )
+            self.loop.set_ready()
+            self.loop.run(self._tick, self.tick_period)
+            return 0
+        finally:
+            self.stopping()
+            if self.election is not None:
+                self.election.close()
+            if self._role_ctl is not None:
+                with contextlib.suppress(Exception):
+                    self._role_ctl.undeclare()
+            for entity in entities:
+                with contextlib.suppress(Exception):
+                    entity.undeclare()
+            session.close()
+            self.session = None
+
+    def _tick(self, now: float) -> None:
+        if self.election is not None:
+            self.election.tick()
+        self.tick(now)
+
+    def stopping(self) -> None:
+        """Before the session closes (e.g. close the Rerun logger)."""

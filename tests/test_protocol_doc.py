@@ -130,6 +130,8 @@ def render_default(f: mi.Field) -> str:
     if f.required:
         return "required"
     value = f.default_factory() if f.default is msgspec.NODEFAULT else f.default
+    if isinstance(value, msgspec.Struct):
+        return f"{type(value).__name__}()"
     return "nil" if value is None else json.dumps(value)
 
 

@@ -105,6 +105,9 @@ class ResolutionEngine(EngineProcess):
         self.deployed = False
         self.mirror: m.EngineState | None = None
         self.latest: m.Selection | None = None
+        #: Live Adaptation Engine claims (replica -> epoch) and members: whose selections count.
+        self.adaptation_claims: dict[str, int] = {}
+        self.adaptation_members: set[str] = set()
         self.failed: tuple[frozenset[str], tuple, float] | None = None
         self._next_reconcile = 0.0
         self._reconcile_soon = False
@@ -267,6 +270,13 @@ class ResolutionEngine(EngineProcess):
             self.refuse("selection", f"selection {msg.seq} carries no Adaptation Engine fence")
             return None
         term = (fence.epoch, fence.leader)
+        if not self._from_adaptation_leader(term):
+            self.refuse(
+                "selection",
+                f"selection {msg.seq} names leader {fence.leader} (epoch {fence.epoch}), "
+                "which does not lead the Adaptation Engine",
+            )
+            return None
         if not newer(term, self.selection_fence):
             self.refuse(
                 "stale_fence",
@@ -290,6 +300,34 @@ class ResolutionEngine(EngineProcess):
             return None
         self.selection_fence = term
         return selection, {**self.cv, **cv}
+
+    def _from_adaptation_leader(self, term: Term) -> bool:
+        """The term of a live Adaptation Engine claim (or of a live replica claiming above
+        every claim seen: its claim token may still be on its way)."""
+        epoch, leader = term
+        if self.adaptation_claims.get(leader) == epoch:
+            return True
+        newest = max(self.adaptation_claims.values(), default=0)
+        return leader in self.adaptation_members and epoch > newest
+
+    def _on_adaptation_token(self, sample: zenoh.Sample) -> None:
+        key, alive = str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+        parts = key.split("/")
+
+        def update() -> None:
+            if parts[-3] == "member":
+                (self.adaptation_members.add if alive else self.adaptation_members.discard)(
+                    parts[-1]
+                )
+            elif parts[-2].isdigit():
+                epoch, replica = int(parts[-2]), parts[-1]
+                if alive:
+                    self.adaptation_claims[replica] = epoch
+                elif self.adaptation_claims.get(replica) == epoch:
+                    del self.adaptation_claims[replica]
+            self._take_latest()
+
+        self.loop.post(update)
 
     def adapt(self, msg: m.Selection) -> Outcome | None:
         checked = self.check(msg)
@@ -636,6 +674,12 @@ class ResolutionEngine(EngineProcess):
             session.declare_subscriber(self.keys.state(NAME), self._on_state),
             session.declare_subscriber(self.keys.events, self._on_event),
             lv.declare_subscriber(f"{self.keys.prefix}/hostagent/*", self._on_host, history=True),
+            lv.declare_subscriber(
+                f"{self.keys.lead('adaptation')}/*/*", self._on_adaptation_token, history=True
+            ),
+            lv.declare_subscriber(
+                self.keys.member("adaptation", "*"), self._on_adaptation_token, history=True
+            ),
         ]
 
     def starting(self) -> None:

@@ -46,7 +46,7 @@ from rra_agent.errors import RraError
 from rra_agent.host.processes import die_with_parent
 from rra_agent.node import decode_data, encode_data
 from rra_agent.scenario import expectations as x
-from rra_agent.scenario.model import ScenarioCase, TimedStep
+from rra_agent.scenario.model import ENGINES, ScenarioCase, TimedStep
 
 MARKER_ENV = "RRA_SCENARIO_RUN"
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
@@ -268,6 +268,8 @@ class _Run:
         self.rec = Recorder()
         self.marker = uuid.uuid4().hex
         self.applied: dict[str, x.Applied] = {}
+        #: Engine role -> the replica a freeze step stopped (what its resume continues).
+        self.frozen: dict[str, str] = {}
         self.t0: float | None = None
         self.end: float = 0.0
         self.orphans: list[int] | None = None
@@ -399,11 +401,26 @@ class _Run:
                 publishers[f"inject/{inj.kind}"].put(_INJ.encode(msg))
                 return True, ""
             action = step.action
-            node = getattr(step, action)
+            node = self.process_of(client, getattr(step, action), action)
             host = self.rec.hosts.get(node, "local")
             return _reply(client.host(host, m.SignalNode(node=node, signal=int(_SIGNALS[action]))))
         except NoReply as e:
             return False, str(e)
+
+    def process_of(self, client: BusClient, name: str, action: str) -> str:
+        """A component's process, or for an engine role (``resolution``...) its leader's
+        (the one frozen before, for ``resume``)."""
+        if name not in ENGINES:
+            return name
+        if action == "resume" and name in self.frozen:
+            return self.frozen.pop(name)
+        reply = client.request(client.keys.engine_ctl(name), m.Status(), 2.0)
+        if not isinstance(reply, m.Ok) or not reply.result.get("replica"):
+            raise NoReply(f"no leader of the {name} engine answered")
+        replica = str(reply.result["replica"])
+        if action == "freeze":
+            self.frozen[name] = replica
+        return replica
 
     # -- the end
     def stop(self, proc: subprocess.Popen[bytes]) -> None:

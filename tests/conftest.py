@@ -11,8 +11,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import yaml
 
+from rra_agent.bus import messages as m
+from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.config import free_port
+from rra_agent.bus.keys import Keys
+from rra_agent.cli.status import gather, set_params
+from rra_agent.engines.events import read_events
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -122,3 +128,98 @@ def bus(hub_port: int):
     from rra_agent.bus.config import BusConfig
 
     return BusConfig(connect=[f"tcp/127.0.0.1:{hub_port}"], multicast=False, lease_ms=500)
+
+
+# ---- a whole system: `rra up` of tests/data/relay_system ---------------------------------------
+#: A Ticker ``source`` whose value is the measurement Level; Level above 5 selects Filtered
+#: (swap ``direct`` -> ``filtered``, rewire ``sink``), and the CV Gain follows Level into
+#: ``sink.offset``.
+RELAY = Path(__file__).parent / "data" / "relay_system"
+RELAY_KEYS = Keys("relay_system")
+
+
+class System:
+    def __init__(self, procs, bus, run_dir: Path, package: Path, *extra: str) -> None:
+        self.procs = procs
+        self.run_dir = run_dir
+        self.proc = procs.python(
+            "rra_agent", "up", str(package), "--run-dir", str(run_dir), "-q",
+            "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra,
+            name="up",
+        )  # fmt: skip
+        self.client = BusClient(bus, "relay_system")
+        self.status = self.wait(lambda s: s["engine"] and not s["engine"]["failed"]
+                                and "sink" in s["engine"]["running"], "deployment")  # fmt: skip
+
+    def gather(self) -> dict:
+        st = gather(self.client, timeout=1.0)
+        for n in st["nodes"]:
+            self.procs.watch(n.get("pid"))
+        return st
+
+    def wait(self, pred, what: str, timeout: float = 30.0) -> dict:
+        def check():
+            st = self.gather()
+            return st if pred(st) else None
+
+        try:
+            return wait_until(check, timeout, what, interval=0.05)
+        except TimeoutError:
+            raise AssertionError(f"{what}: not reached; up log:\n{self.procs.log('up')}") from None
+
+    def node(self, st: dict, name: str) -> dict:
+        """A node as the host agents report it (state ABSENT when no host agent does)."""
+        absent = {"node": name, "state": "ABSENT", "pid": None, "host": None, "restarts": 0}
+        return next((n for n in st["nodes"] if n["node"] == name), absent)
+
+    def ctl(self, node: str, req: m.NodeRequest) -> m.Reply:
+        wait_until(lambda: node in {n for _, n in self.client.alive()}, 10, f"{node}'s token")
+        return self.client.node(node, req)
+
+    def set_level(self, value: float) -> None:
+        """As an operator does (``rra param``): through the Run-time Resolution Engine."""
+        set_params(self.client, "source", {"value": value})
+
+    def leader(self, st: dict, role: str = "resolution") -> str:
+        if role == "resolution":
+            leader = (st.get("engine") or {}).get("leader") or ["", ""]
+            return leader[1]
+        reply = self.client.request(RELAY_KEYS.engine_ctl(role), m.Status(), 2.0)
+        assert isinstance(reply, m.Ok), reply
+        return reply.result["leader"][1]
+
+    def events(self) -> list:
+        return read_events(self.run_dir / "events.jsonl")
+
+    def stop(self) -> int:
+        self.client.close()
+        self.proc.send_signal(signal.SIGINT)
+        return self.proc.wait(30)
+
+
+@pytest.fixture
+def system(procs, bus, tmp_path):
+    """Start ``rra up`` of a package (default: tests/data/relay_system) in real processes."""
+    started: list[System] = []
+
+    def start(package: Path = RELAY, *extra: str) -> System:
+        s = System(procs, bus, tmp_path / "run", package, *extra)
+        started.append(s)
+        return s
+
+    yield start
+    for s in started:
+        if s.proc.poll() is None:
+            assert s.stop() == 0
+
+
+def package_copy(tmp_path: Path) -> Path:
+    pkg = tmp_path / "pkg"
+    shutil.copytree(RELAY, pkg)
+    return pkg
+
+
+def edit_yaml(path: Path, fn) -> None:
+    data = yaml.safe_load(path.read_text())
+    fn(data)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))

@@ -38,7 +38,6 @@ from rra_agent.viz.rerun_log import Logger, open_logger
 NAME = "adaptation"
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
-_STATE = m.Codec[m.StateMessage](m.StateMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ANY = m.Codec[Any](Any)
 
@@ -106,15 +105,6 @@ class AdaptationProcess(EngineProcess):
         if isinstance(msg, m.Selection) and msg.fence is not None and msg.fence.leader != self.name:
             self.loop.post(lambda: self._follow(msg))
 
-    def _on_state(self, sample: zenoh.Sample) -> None:
-        try:
-            state = _STATE.decode(sample.payload.to_bytes())
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            return
-        if state.selection_fence is not None:
-            epoch = state.selection_fence.epoch
-            self.loop.post(lambda: self._observe_epoch(epoch))
-
     # ---- resuming and following (main thread) -------------------------------------------
     def starting(self) -> None:
         """Resume from the running system before taking part in the election."""
@@ -173,18 +163,16 @@ class AdaptationProcess(EngineProcess):
             self.refuse("selection", f"{why}: {e}")
 
     def _follow(self, msg: m.Selection) -> None:
-        """A selection of the leader: a standby keeps the same state."""
+        """A selection of the leader: a standby keeps the same state. Only the leader this
+        replica's election sees is followed (a forged selection is refused)."""
         assert msg.fence is not None
-        self._observe_epoch(msg.fence.epoch)
-        if not self.leading:
-            self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
-            self.seq = max(self.seq, msg.seq)
-
-    def _observe_epoch(self, epoch: int) -> None:
-        if self.election is not None:
-            self.election.observe_epoch(epoch)
-        else:
-            self._floor = max(self._floor, epoch)
+        if self.election is None or self.leading:
+            return
+        if (msg.fence.epoch, msg.fence.leader) != self.election.leader:
+            self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
+            return
+        self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
+        self.seq = max(self.seq, msg.seq)
 
     # ---- evaluation (main thread) ------------------------------------------------------
     def _evaluate_posted(self) -> None:
@@ -265,7 +253,6 @@ class AdaptationProcess(EngineProcess):
             self.publisher,
             session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
             session.declare_subscriber(self.keys.selection, self._on_selection),
-            session.declare_subscriber(self.keys.state("resolution"), self._on_state),
         ]
 
     def on_leadership(self, leading: bool) -> None:

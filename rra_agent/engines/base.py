@@ -79,6 +79,9 @@ class EngineProcess:
     def on_leadership(self, leading: bool) -> None:
         """This replica started (True) or stopped (False) leading."""
 
+    def stalled(self) -> None:
+        """This replica was stalled (frozen, starved): what it mirrors may be out of date."""
+
     def tick(self, now: float) -> None:
         """Periodic work (every ``tick_period``)."""
 
@@ -211,7 +214,14 @@ class EngineProcess:
             ]
             self.starting()
             self.election = Election(
-                session, self.keys, self.role, self.name, self.loop, self._leadership_changed
+                session,
+                self.keys,
+                self.role,
+                self.name,
+                self.loop,
+                self._leadership_changed,
+                tick_period=self.tick_period,
+                on_stall=self.stalled,
             )
             self.election.max_epoch = self.epoch_floor()
             self.election.start()

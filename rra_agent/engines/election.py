@@ -44,6 +44,8 @@ class Election:
         on_change: Callable[[], None],
         *,
         claim_after: float = 1.0,
+        tick_period: float = 0.1,
+        on_stall: Callable[[], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.session = session
@@ -63,6 +65,12 @@ class Election:
         self._entities: list[Any] = []
         self._leaderless_since: float | None = None
         self._defer_until = 0.0
+        #: A gap this long between ticks means this replica itself stalled (frozen,
+        #: starved): its view of the tokens is being rebuilt, so it defers any claim.
+        self._stall = max(0.5, 3 * tick_period)
+        self._last_tick: float | None = None
+        #: Called when this replica finds it has stalled (to re-sync what it mirrors).
+        self.on_stall = on_stall
         self.changes = 0
 
     # ---- queries -----------------------------------------------------------------------
@@ -153,7 +161,16 @@ class Election:
             self.decide()
 
     # ---- the decision (main thread) -----------------------------------------------------
+    def _check_stall(self) -> None:
+        now = self.clock()
+        if self._last_tick is not None and now - self._last_tick > self._stall:
+            self._defer_until = max(self._defer_until, now + self.claim_after)
+            if self.on_stall is not None:
+                self.on_stall()
+        self._last_tick = now
+
     def decide(self) -> None:
+        self._check_stall()
         before = self.term
         others = {(e, r) for r, e in self.claims.items() if r != self.me}
         if self.term is not None:
@@ -183,6 +200,7 @@ class Election:
 
     def tick(self) -> None:
         """Called periodically: claims a lead nobody else took within ``claim_after``."""
+        self._check_stall()
         if self.term is None and not (set(self.claims) - {self.me}):
             self.decide()
 

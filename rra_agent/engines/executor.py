@@ -98,6 +98,8 @@ class StepRecord:
     detail: str = ""
 
     def line(self) -> str:
+        if self.action == "note":
+            return f"note: {self.detail}"
         status = "ok" if self.ok else f"FAILED: {self.detail}"
         return f"{self.action} {self.node} ({self.seconds * 1e3:.1f} ms) {status}"
 
@@ -235,9 +237,51 @@ class Executor:
             self.standby[s.name] = s
         return Outcome(True, tx.records, seconds=self.clock() - t0)
 
+    def normalize(self, plan: r.Plan) -> tuple[r.Plan, list[str]]:
+        """The plan as it applies to the nodes this executor knows to run, and what had to
+        change: a stop of a node that is not running is dropped, a swap whose old node is not
+        running becomes a start, parameters and rewires of a node that is not running are
+        dropped (it starts with them). Such a plan comes from a model that moved on without
+        the running system; the reconcile loop converges the rest."""
+        known = {**self.running, **self.standby}
+        steps: list[r.PlanStep] = []
+        notes: list[str] = []
+        for s in plan.steps:
+            name = s.component
+            if isinstance(s, r.SwapComponent) and name not in self.running:
+                notes.append(f"{name} was not running: {s.replacement} is started instead")
+                steps.append(
+                    r.StartComponent(
+                        component=s.replacement,
+                        definition=s.definition,
+                        inputs=s.inputs,
+                        outputs=s.outputs,
+                    )
+                )
+            elif isinstance(s, r.StartComponent) and name in self.running:
+                notes.append(f"{name} was running already")
+            elif isinstance(
+                s, r.StopComponent | r.SetParameters | r.Rewire | r.SetImplementation
+            ) and (name not in known):
+                if isinstance(s, r.SetImplementation):
+                    steps.append(
+                        r.StartComponent(
+                            component=name,
+                            definition=s.definition,
+                            inputs=s.inputs,
+                            outputs=s.outputs,
+                        )
+                    )
+                notes.append(f"{name} was not running ({type(s).__name__} adjusted)")
+            else:
+                steps.append(s)
+        return r.Plan(steps=tuple(steps)), notes
+
     def execute(self, plan: r.Plan) -> Outcome:
         t0 = self.clock()
+        plan, notes = self.normalize(plan)
         tx = Transaction(self.clock)
+        tx.records.extend(StepRecord("note", "", 0.0, True, n) for n in notes)
         running_before, standby_before = dict(self.running), dict(self.standby)
         self._switched: float | None = None
         try:

@@ -62,9 +62,13 @@ NAME = "resolution"
 #: Benchmarks only (``tools/bench_recovery.py``): wait this long before executing a plan, to
 #: emulate a slower adaptation pipeline such as the paper's 0.5 s.
 EMULATED_DELAY = float(os.environ.get("RRA_EMULATED_SWAP_DELAY", "0") or 0)
+#: The leader republishes its state at least this often (seconds).
+STATE_EVERY = 1.0
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
+_REPLY = m.Codec[m.Reply](m.Reply)
+_ENGINE_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 
 
 class ResolutionEngine(EngineProcess):
@@ -105,6 +109,9 @@ class ResolutionEngine(EngineProcess):
         self.deployed = False
         self.mirror: m.EngineState | None = None
         self.latest: m.Selection | None = None
+        #: The selection last acted on (each is acted on once; a retry clears it).
+        self._taken: m.Selection | None = None
+        self._waiting_for_claim = False
         #: Live Adaptation Engine claims (replica -> epoch) and members: whose selections count.
         self.adaptation_claims: dict[str, int] = {}
         self.adaptation_members: set[str] = set()
@@ -115,6 +122,7 @@ class ResolutionEngine(EngineProcess):
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
         self.sink: EventSink | None = None
         self._state_pub: zenoh.Publisher | None = None
+        self._state_sent = 0.0
 
     # ---- the model side (pure, on the main thread) ---------------------------------------
     def target(self, selection: frozenset[str], cv: dict[str, float]) -> SystemModel:
@@ -161,6 +169,8 @@ class ResolutionEngine(EngineProcess):
         self.counters.received += 1
         if isinstance(msg, m.Selection):
             with self.lock:
+                if self.latest is not None and self.latest is not self._taken and self.leading:
+                    self.counters.bump("coalesced")  # a newer one came first: it wins
                 self.latest = msg
             self.loop.post(self._take_latest)
 
@@ -196,11 +206,18 @@ class ResolutionEngine(EngineProcess):
         self.loop.post(seen)
 
     # ---- following the leader (main thread) ----------------------------------------------
-    def _mirror(self, state: m.EngineState) -> None:
-        if self.election is not None:
-            self.election.observe_epoch(state.fence.epoch)
+    def _mirror(self, state: m.EngineState, *, trusted: bool = False) -> None:
+        """Keep the leader's state (a standby). Only the leader this replica's election sees
+        is mirrored (``trusted``: the answer of the role's endpoint before the election)."""
         if self.leading:
             return
+        term = (state.fence.epoch, state.fence.leader)
+        if not trusted and (self.election is None or term != self.election.leader):
+            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
+            return
+        old = self.mirror
+        if old is not None and old.fence == state.fence and state.version < old.version:
+            return  # an older publication of the same leader, overtaken
         self.mirror = state
         self.selection, self.cv = frozenset(state.selection), dict(state.cv)
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
@@ -208,6 +225,29 @@ class ResolutionEngine(EngineProcess):
         if state.selection_fence is not None:
             self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
         self.publish_status()
+
+    def stalled(self) -> None:
+        """Re-sync the mirror from the leader at once (publications were missed)."""
+        if self.leading or self.session is None:
+            return
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            try:
+                answer = _REPLY.decode(reply.ok.payload.to_bytes())
+                if isinstance(answer, m.Ok) and answer.result:
+                    state = msgspec.convert(answer.result, m.EngineState)
+                    self.loop.post(lambda: self._mirror(state))
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                pass
+
+        self.session.get(
+            self.keys.engine_ctl(NAME),
+            zenoh.handlers.Callback(on_reply),
+            payload=_ENGINE_REQ.encode(m.GetState()),
+            timeout=1.0,
+        )
 
     def _node_state(self, st: m.NodeState) -> None:
         if self.leading and self.sink is not None:
@@ -258,21 +298,26 @@ class ResolutionEngine(EngineProcess):
 
     # ---- adaptation (main thread) --------------------------------------------------------
     def _take_latest(self) -> None:
+        """Act on the newest selection received, once (a standby only keeps it)."""
         with self.lock:
             msg = self.latest
-        if msg is not None and self.leading and self.deployed and msg.seq != self.applied:
+        if msg is None or msg is self._taken or not (self.leading and self.deployed):
+            return
+        self._taken = msg
+        if msg.seq != self.applied:
             self.adapt(msg)
 
     def check(self, msg: m.Selection) -> tuple[frozenset[str], dict[str, float]] | None:
         """The selection and CV values to apply, or None (refused and counted)."""
         fence = msg.fence
         if fence is None:
-            self.refuse("selection", f"selection {msg.seq} carries no Adaptation Engine fence")
+            self.refuse("unfenced selection", f"selection {msg.seq} carries no fence")
             return None
         term = (fence.epoch, fence.leader)
         if not self._from_adaptation_leader(term):
+            self._waiting_for_claim = True  # acted on again when a new claim shows up
             self.refuse(
-                "selection",
+                "selection from a non-leader",
                 f"selection {msg.seq} names leader {fence.leader} (epoch {fence.epoch}), "
                 "which does not lead the Adaptation Engine",
             )
@@ -295,7 +340,8 @@ class ResolutionEngine(EngineProcess):
             problems.append(f"no such CV attribute (or not a number): {', '.join(sorted(bad_cv))}")
         if problems:
             self.refuse(
-                "selection", f"selection {msg.seq} from {fence.leader}: {'; '.join(problems)}"
+                "invalid selection",
+                f"selection {msg.seq} from {fence.leader}: {'; '.join(problems)}",
             )
             return None
         self.selection_fence = term
@@ -325,7 +371,9 @@ class ResolutionEngine(EngineProcess):
                     self.adaptation_claims[replica] = epoch
                 elif self.adaptation_claims.get(replica) == epoch:
                     del self.adaptation_claims[replica]
-            self._take_latest()
+            if self._waiting_for_claim:
+                self._waiting_for_claim, self._taken = False, None
+                self._take_latest()
 
         self.loop.post(update)
 
@@ -554,11 +602,18 @@ class ResolutionEngine(EngineProcess):
     def _changed(self) -> None:
         """The desired state changed: publish it (standbys mirror it), persist it."""
         self.version += 1
+        state = self._publish_state()
+        self._persist(state)
+        self.publish_status()
+
+    def _publish_state(self) -> m.EngineState:
+        """Publish the state (also every ``STATE_EVERY`` s: a standby that missed a change,
+        stalled or reconnecting, is never more than that behind)."""
         state = self.engine_state()
         if self.leading and self._state_pub is not None:
             self._state_pub.put(_STATE.encode(state))
-        self._persist(state)
-        self.publish_status()
+            self._state_sent = time.monotonic()
+        return state
 
     @property
     def state_file(self) -> Path | None:
@@ -612,6 +667,7 @@ class ResolutionEngine(EngineProcess):
             },
             "unreachable": sorted(self.unreachable),
             "applied": self.applied,
+            "version": self.version if self.leading or self.mirror is None else self.mirror.version,
             "seq": self.seq,
             "deployed": self.deployed,
             "failed": bool(self.failed),
@@ -695,7 +751,7 @@ class ResolutionEngine(EngineProcess):
             try:
                 answer = m.Codec[m.Reply](m.Reply).decode(reply.ok.payload.to_bytes())
                 if isinstance(answer, m.Ok) and answer.result:
-                    self._mirror(msgspec.convert(answer.result, m.EngineState))
+                    self._mirror(msgspec.convert(answer.result, m.EngineState), trusted=True)
             except (msgspec.DecodeError, msgspec.ValidationError):
                 continue
 
@@ -707,10 +763,13 @@ class ResolutionEngine(EngineProcess):
         return saved.fence.epoch if saved is not None else 0
 
     def tick(self, now: float) -> None:
+        self.publish_status()
         if not self.leading:
             return
+        if self.deployed and time.monotonic() - self._state_sent >= STATE_EVERY:
+            self._publish_state()
         if self.failed and now - self.failed[2] >= self.retry_after:
-            self.failed = None  # try the newest selection again
+            self.failed, self._taken = None, None  # try the newest selection again
             self._take_latest()
         if self._reconcile_soon or now >= self._next_reconcile:
             reason = "a host reported a change" if self._reconcile_soon else "periodic"

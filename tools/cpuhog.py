@@ -1,7 +1,7 @@
 """A busy loop on every core (or N), for running tests and benchmarks under load.
 
-    python tools/cpuhog.py [N] -- COMMAND ...   run COMMAND while N busy loops spin
-    python tools/cpuhog.py [N]                  spin until Ctrl-C
+python tools/cpuhog.py [N] -- COMMAND ...   run COMMAND while N busy loops spin
+python tools/cpuhog.py [N]                  spin until Ctrl-C
 """
 
 from __future__ import annotations

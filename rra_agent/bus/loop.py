@@ -19,6 +19,7 @@ import select
 import signal
 import socket
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any
 
@@ -108,9 +109,9 @@ class MainLoop:
     def _run(self, fn: Callable[[], None]) -> None:
         try:
             fn()
-        except Exception as e:  # a failing job is reported, the loop goes on
+        except Exception:  # a failing job is reported (with where it failed), the loop goes on
             self.errors += 1
-            print(f"rra: {type(e).__name__}: {e}", flush=True)
+            print(f"rra: a job of the main loop failed:\n{traceback.format_exc()}", flush=True)
 
     def _beat(self) -> None:
         now = time.monotonic()

@@ -21,10 +21,13 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.deployment import Deployment, deploy
 from rra_agent.host.agent import HostAgent
-from rra_agent.models.system import Command
+from rra_agent.models.system import Command, Supervision
 
 ENGINES = ("monitor", "adaptation", "resolution")
 REPLICA_NAMES = "abcdefgh"
+#: Engines keep no state of their own a restart could lose (they resume from the system) and
+#: restart in well under a second: a larger restart budget than a component's default.
+ENGINE_SUPERVISION = Supervision(max_restarts=20, restart_window=60.0, cooldown=5.0)
 
 
 def replica_names(engine: str, replicas: int) -> list[str]:
@@ -94,7 +97,13 @@ def engine_specs(
             str(run_dir),
         ]
         specs += [
-            m.NodeSpec(system=dep.system, name=name, host=host, implementation=Command(command=cmd))
+            m.NodeSpec(
+                system=dep.system,
+                name=name,
+                host=host,
+                implementation=Command(command=cmd),
+                supervision=ENGINE_SUPERVISION,
+            )
             for name in replica_names(engine, replicas)
         ]
     return specs

@@ -31,6 +31,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.cli.status import set_params
 from rra_agent.errors import RraError
+from rra_agent.node import encode_data
 
 ROOT = Path(__file__).resolve().parents[1]
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
@@ -357,3 +358,36 @@ def test_every_process_reports_its_counters(system, bus):
         capture_output=True, text=True, timeout=30,
     )  # fmt: skip
     assert msgspec.json.decode(as_json.stdout)["stats"]
+
+
+def test_a_flood_on_one_key_is_coalesced_and_an_unrelated_adaptation_goes_on(
+    system, procs, bus, tmp_path
+):
+    """10 000 valid samples/s on a measurement no rule reads (the package of
+    tools/bench_flood.py): the Context Monitor keeps only the newest per source, and a
+    change of another measurement is still adapted to (the figures: tools/bench_flood.py)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from bench_flood import write_package
+
+    sys_ = system(write_package(tmp_path))
+    procs.spawn(
+        [sys.executable, str(ROOT / "tools" / "flood.py"), bus.connect[0],
+         K.data("noise/out"), "10000"],
+        name="flood",
+    )  # fmt: skip
+
+    def monitor() -> dict:
+        st = sys_.gather()["stats"]
+        return next(v["counters"] for v in st.values()
+                    if v["role"] == "monitor" and v["counters"].get("leading"))  # fmt: skip
+
+    wait_until(lambda: monitor().get("coalesced", 0) >= 1000, 20, "the flood coalesced")
+    level = sys_.client.session.declare_publisher(K.data("source/out"))
+    for value, want in ((7.0, "filtered"), (2.0, "direct"), (7.0, "filtered")):
+        level.put(encode_data({"seq": 1, "value": value, "relay": "test", "count": 1}))
+        sys_.wait(lambda s, w=want: w in s["engine"]["running"] and not s["engine"]["failed"],
+                  f"the swap to {want} during the flood", timeout=10)  # fmt: skip
+    level.undeclare()
+    st = sys_.gather()
+    assert procs.started[-1].poll() is None, "the flood stopped early"
+    assert not [n for n in st["nodes"] if n.get("restarts") or n["state"] == "FATAL"]

@@ -23,6 +23,48 @@ from rra_agent.engines.events import read_events
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("rra adversity", "run the runtime tests under adverse conditions")
+    group.addoption(
+        "--cpu-hog", action="store_true", help="a busy loop on every core for the whole run"
+    )
+    group.addoption(
+        "--hostile",
+        action="store_true",
+        help="a hostile client (tools/hostile.py) on the bus of every system a test starts",
+    )
+
+
+def stop_process(proc: subprocess.Popen) -> None:
+    """SIGINT, then SIGKILL if it has not exited within 10 s."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def cpu_hog_option(request: pytest.FixtureRequest) -> Iterator[None]:
+    """With ``--cpu-hog``: tools/cpuhog.py spins on every core while the tests run."""
+    if not request.config.getoption("--cpu-hog"):
+        yield
+        return
+    proc = subprocess.Popen([sys.executable, str(ROOT / "tools" / "cpuhog.py")])
+    yield
+    stop_process(proc)
+
+
+@pytest.fixture
+def hog() -> Iterator[subprocess.Popen]:
+    """A busy loop on both cores for the length of the test."""
+    proc = subprocess.Popen([sys.executable, str(ROOT / "tools" / "cpuhog.py"), "2"])
+    yield proc
+    stop_process(proc)
+
+
 MINI = Path(__file__).parent / "data" / "mini"
 
 
@@ -139,7 +181,9 @@ RELAY_KEYS = Keys("relay_system")
 
 
 class System:
-    def __init__(self, procs, bus, run_dir: Path, package: Path, *extra: str) -> None:
+    def __init__(
+        self, procs, bus, run_dir: Path, package: Path, *extra: str, hostile: bool = False
+    ) -> None:
         self.procs = procs
         self.run_dir = run_dir
         self.proc = procs.python(
@@ -148,6 +192,9 @@ class System:
             name="up",
         )  # fmt: skip
         self.client = BusClient(bus, "relay_system")
+        if hostile:
+            procs.spawn([sys.executable, str(ROOT / "tools" / "hostile.py"), bus.connect[0],
+                         "relay_system"], name="hostile")  # fmt: skip
         self.status = self.wait(lambda s: s["engine"] and not s["engine"]["failed"]
                                 and "sink" in s["engine"]["running"], "deployment")  # fmt: skip
 
@@ -198,12 +245,14 @@ class System:
 
 
 @pytest.fixture
-def system(procs, bus, tmp_path):
-    """Start ``rra up`` of a package (default: tests/data/relay_system) in real processes."""
+def system(procs, bus, tmp_path, request):
+    """Start ``rra up`` of a package (default: tests/data/relay_system) in real processes
+    (with a hostile client on its bus under ``--hostile``)."""
     started: list[System] = []
+    hostile = request.config.getoption("--hostile")
 
     def start(package: Path = RELAY, *extra: str) -> System:
-        s = System(procs, bus, tmp_path / "run", package, *extra)
+        s = System(procs, bus, tmp_path / "run", package, *extra, hostile=hostile)
         started.append(s)
         return s
 

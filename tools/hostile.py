@@ -1,0 +1,143 @@
+"""A hostile client on a system's bus: everything it sends must be refused, dropped or ignored.
+
+    python tools/hostile.py ENDPOINT SYSTEM [--rate 200] [--seconds S]
+
+At ``--rate`` messages per second (until Ctrl-C, or for ``--seconds``) it cycles through:
+junk bytes and payloads over the size limit on every data, ctx, selection, events and
+inject key it has seen; selections forged with a fence no live leader holds, naming unknown
+features and CV values of 1e6; node requests with parameters out of their bounds, of the
+wrong type or unknown; malformed queries to every node, host and engine control endpoint.
+It never sends a valid unauthenticated command (that is access control's business): a
+runtime that is disturbed by it (a restart, a FATAL node, a value out of bounds, a lost
+adaptation) has a bug. Used by the tests with ``pytest --hostile`` and by hand.
+On exit prints how many messages it sent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import random
+import sys
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from rra_agent.bus import messages as m
+from rra_agent.bus.config import BusConfig
+from rra_agent.bus.counters import MAX_PAYLOAD
+from rra_agent.bus.keys import Keys
+from rra_agent.bus.runtime import open_session
+
+JUNK = [b"", b"\x00", b"\xc1\xff", b"\x81\xa1t\xa3zzz", bytes(range(256)), b"\x92\xa3sel\xc0"]
+_SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
+_ANY = m.Codec[Any](Any)
+
+
+class Hostile:
+    def __init__(self, session: zenoh.Session, keys: Keys, seed: int = 1) -> None:
+        self.session, self.keys = session, keys
+        self.rng = random.Random(seed)
+        self.lock = threading.Lock()
+        self.topics: set[str] = {keys.selection, keys.events, keys.inject("motor/2")}
+        self.nodes: set[str] = set()
+        self.hosts: set[str] = set()
+        self.sent = 0
+        self.sub = session.declare_subscriber(keys.everything, self._learn)
+
+    def _learn(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if "/data/" in key or "/ctx/" in key:
+            with self.lock:
+                self.topics.add(key)
+
+    def discover(self) -> None:
+        for reply in self.session.liveliness().get(self.keys.alive_all, timeout=0.5):
+            if reply.ok is not None:
+                parsed = self.keys.parse_alive(str(reply.ok.key_expr))
+                if parsed:
+                    self.nodes.add(parsed[1])
+        for reply in self.session.liveliness().get(f"{self.keys.prefix}/hostagent/*", timeout=0.5):
+            if reply.ok is not None:
+                self.hosts.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+
+    # ---- what it sends ------------------------------------------------------------------
+    def junk(self) -> None:
+        with self.lock:
+            key = self.rng.choice(sorted(self.topics))
+        family = key.removeprefix(self.keys.prefix + "/").split("/")[0]
+        payloads = list(JUNK)
+        if family in ("ctx", "selection", "inject"):  # over the limit (data's is 16 MiB: no)
+            payloads.append(b"\x00" * (MAX_PAYLOAD[family] + 1))
+        self.session.put(key, self.rng.choice(payloads))
+
+    def forged_selection(self) -> None:
+        fence = self.rng.choice([None, m.Fence(epoch=10**9, leader="mallory")])
+        features = self.rng.choice([["Teleport"], ["Direct", "Filtered"], []])
+        msg = m.Selection(
+            seq=self.rng.randrange(1, 10**6), stamp=time.time(), deployment=[],
+            features=features, cv={"Gain": 1e6, "MaxVel": 1e6}, changed=True, fence=fence,
+        )  # fmt: skip
+        self.session.put(self.keys.selection, _SEL.encode(msg))
+
+    def bad_params(self) -> None:
+        if not self.nodes:
+            return
+        node = self.rng.choice(sorted(self.nodes))
+        # Wrong types and unknown names: refused whatever the declared bounds.
+        params = self.rng.choice(
+            [{"rate_hz": "fast"}, {"offset": "x"}, {"no_such_parameter": 1}, {"value": [1e6]}]
+        )
+        self.query(self.keys.node_ctl(node), _ANY.encode(m.SetParams(params=params)))
+
+    def bad_queries(self) -> None:
+        targets = [self.keys.node_ctl(n) for n in self.nodes]
+        targets += [self.keys.host_ctl(h) for h in self.hosts]
+        targets += [self.keys.engine_ctl(e) for e in ("resolution", "adaptation", "monitor")]
+        self.query(self.rng.choice(targets), self.rng.choice(JUNK))
+
+    def query(self, key: str, payload: bytes) -> None:
+        self.session.get(
+            key, zenoh.handlers.Callback(lambda _r: None), payload=payload, timeout=1.0
+        )
+
+    def run(self, rate: float, seconds: float | None, stop: threading.Event) -> None:
+        actions = itertools.cycle(
+            [self.junk, self.forged_selection, self.junk, self.bad_params, self.bad_queries]
+        )
+        t0 = time.monotonic()
+        next_discovery = t0
+        while not stop.is_set() and (seconds is None or time.monotonic() - t0 < seconds):
+            if time.monotonic() >= next_discovery:
+                self.discover()
+                next_discovery = time.monotonic() + 1.0
+            next(actions)()
+            self.sent += 1
+            stop.wait(max(0.0, t0 + self.sent / rate - time.monotonic()))  # pacing
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("endpoint")
+    ap.add_argument("system")
+    ap.add_argument("--rate", type=float, default=200.0, help="messages per second")
+    ap.add_argument("--seconds", type=float, help="stop after this long (default: Ctrl-C)")
+    args = ap.parse_args(argv)
+    session = open_session(BusConfig(connect=[args.endpoint], multicast=False, lease_ms=500))
+    hostile = Hostile(session, Keys(args.system))
+    stop = threading.Event()
+    try:
+        hostile.run(args.rate, args.seconds, stop)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        print(f"hostile: sent {hostile.sent}", flush=True)
+        hostile.sub.undeclare()
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -7,9 +7,10 @@ but computed by the Context Monitor and published to the Adaptation Engine like 
 Neither ``source`` nor ``noise`` publishes by itself (Relays without input): this script
 publishes as ``source`` (the cause, stamped) and ``tools/flood.py`` publishes as ``noise``.
 
-After one untimed warm-up flip, for each run the level flips (7 <-> 2); the latency is from the put of the level sample to
-the Run-time Resolution Engine's `AdaptationEvent` (outcome ok) that applied it: monitor,
-Adaptation Engine, resolution, plan execution and the event, all real processes on loopback.
+After one untimed warm-up flip, for each run the level flips (7 <-> 2); the latency is
+from the put of the level sample to the Run-time Resolution Engine's `AdaptationEvent`
+(outcome ok) that applied it: monitor, Adaptation Engine, resolution, plan execution and the
+event, all real processes on loopback.
 Measured quiet, then with ``--rate`` valid samples/s (default 10 000) on ``noise.out`` from a
 separate process. Prints median and p99 beside the goal (flooded: <= 100 ms), the flood rate
 achieved and what the Context Monitor coalesced.

@@ -46,7 +46,7 @@ def test_measurement_change_swaps_rewires_and_sets_cv_parameter(system):
     sub = sys_.client.session.declare_subscriber(
         K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
     )
-    wait_until(lambda: any(o.get("relay") == "sink" and o["value"] >= 114 for o in out), 10,
+    wait_until(lambda: any(o.get("relay") == "sink" and o.get("value", 0) >= 114 for o in out), 10,
                "samples through filtered")  # fmt: skip
     sub.undeclare()
 
@@ -128,7 +128,7 @@ def test_random_bytes_on_every_key_crash_nothing(system):
     sys_.set_level(8.0)
     st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "adaptation after junk")
     assert all(n.get("restarts", 0) == 0 for n in st["nodes"])
-    assert all(n["state"] in ("RUNNING", "STOPPED") for n in st["nodes"])
+    assert all(n["state"] in ("RUNNING", "STOPPED") for n in st["nodes"]), st["nodes"]
     assert sys_.ctl("sink", m.Describe()).result["dropped"] >= 1
     assert sys_.proc.poll() is None
 

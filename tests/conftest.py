@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -180,6 +181,12 @@ RELAY = Path(__file__).parent / "data" / "relay_system"
 RELAY_KEYS = Keys("relay_system")
 
 
+def listening(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
 class System:
     def __init__(
         self, procs, bus, run_dir: Path, package: Path, *extra: str, hostile: bool = False
@@ -191,6 +198,10 @@ class System:
             "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra,
             name="up",
         )  # fmt: skip
+        # A loaded machine can take many seconds to start `rra up`: connect once it listens.
+        port = int(bus.connect[0].rsplit(":", 1)[1])
+        wait_until(lambda: self.proc.poll() is not None or listening(port), 60,
+                   "rra up listening", interval=0.02)  # fmt: skip
         self.client = BusClient(bus, "relay_system")
         if hostile:
             procs.spawn([sys.executable, str(ROOT / "tools" / "hostile.py"), bus.connect[0],

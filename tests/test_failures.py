@@ -118,7 +118,7 @@ def test_nodes_stopped_behind_the_engines_back_are_started_again(system):
     for node in ("source", "direct", "sink"):
         assert isinstance(sys_.client.host("local", m.StopNode(node=node)), m.Ok)
     st = sys_.wait(
-        lambda s: all(s["engine"]["observed"][n]["state"] == "RUNNING"
+        lambda s: all(s["engine"]["observed"].get(n, {}).get("state") == "RUNNING"
                       and s["engine"]["observed"][n]["pid"] != before[n]
                       for n in ("source", "direct", "sink")),
         "the stopped nodes running again",

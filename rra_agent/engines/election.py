@@ -72,6 +72,10 @@ class Election:
         #: Called when this replica finds it has stalled (to re-sync what it mirrors).
         self.on_stall = on_stall
         self.changes = 0
+        #: No decision before `start` has read the claims: a membership or claim change
+        #: arriving while it waits must not make it claim on half a picture (a restarted
+        #: replica took the lead back from the standby that had just replaced it).
+        self._started = False
 
     # ---- queries -----------------------------------------------------------------------
     @property
@@ -112,6 +116,7 @@ class Election:
             # A leader answered before the election started (an epoch is known) but no
             # claim is visible yet: wait before claiming rather than trust an empty view.
             self._defer_until = self.clock() + self.claim_after
+        self._started = True
         self.decide()
 
     def close(self) -> None:
@@ -170,6 +175,8 @@ class Election:
         self._last_tick = now
 
     def decide(self) -> None:
+        if not self._started:
+            return
         self._check_stall()
         before = self.term
         others = {(e, r) for r, e in self.claims.items() if r != self.me}

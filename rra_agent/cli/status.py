@@ -37,20 +37,25 @@ def _leader_token(client: BusClient, role: str) -> str:
     return f"{client.keys.lead(role)}/*/*"
 
 
+def wait_for_leader(client: BusClient, timeout: float) -> None:
+    """Until the Resolution Engine leader's token has reached this session (TimeoutError)."""
+    wait_until(
+        lambda: list(
+            client.session.liveliness().get(_leader_token(client, "resolution"), timeout=0.5)
+        ),
+        timeout,
+        "the resolution engine",
+        interval=0.02,
+    )
+
+
 def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
     """The engine's status, every host agent's node list and every process's counters."""
     out: dict[str, Any] = {"engine": None, "nodes": [], "stats": {}}
     # A client just connected has not been told about the engine yet: query it once the
     # leader's token has reached this session (its queryable was declared before it).
     with contextlib.suppress(TimeoutError):
-        wait_until(
-            lambda: list(
-                client.session.liveliness().get(_leader_token(client, "resolution"), timeout=0.5)
-            ),
-            timeout,
-            "the resolution engine",
-            interval=0.02,
-        )
+        wait_for_leader(client, timeout)
     try:
         reply = client.request(client.keys.engine_ctl("resolution"), m.Status(), timeout)
         if isinstance(reply, m.Ok):
@@ -267,14 +272,7 @@ def set_params(
     they are checked, become part of the Run-time Configured System Model and survive
     restarts. Raises `RraError` with the engine's refusal."""
     try:
-        wait_until(
-            lambda: list(
-                client.session.liveliness().get(_leader_token(client, "resolution"), timeout=0.5)
-            ),
-            timeout,
-            "the resolution engine",
-            interval=0.02,
-        )
+        wait_for_leader(client, timeout)
     except TimeoutError:
         raise RraError(
             f"no Run-time Resolution Engine leads system {client.keys.system!r}"

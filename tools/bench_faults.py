@@ -71,6 +71,7 @@ from rra_agent.bus.keys import Keys
 from rra_agent.cli.status import gather, set_params
 from rra_agent.engines.events import read_events
 from rra_agent.errors import RraError
+from rra_agent.host.processes import process_state
 from rra_agent.models.system import Supervision
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -155,14 +156,6 @@ def end_all() -> None:
 
 def _terminate(signum: int, _frame: Any) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-def process_state(pid: int) -> str:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return ""
 
 
 def children(ppid: int) -> list[int]:

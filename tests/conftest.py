@@ -187,6 +187,17 @@ def listening(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def tcp_peers(pid: int, netns: str | None = None) -> set[int]:
+    """Remote TCP ports of the established connections of process ``pid`` (from ``ss``)."""
+    cmd = ["ss", "-Htnp", "state", "established"]
+    if netns:
+        cmd = ["ip", "netns", "exec", netns, *cmd]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+    return {
+        int(line.split()[3].rsplit(":", 1)[1]) for line in out.splitlines() if f"pid={pid}," in line
+    }
+
+
 class System:
     def __init__(
         self, procs, bus, run_dir: Path, package: Path, *extra: str, hostile: bool = False

@@ -29,6 +29,7 @@ from conftest import RELAY_KEYS as K
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.config import free_port
 from rra_agent.cli.status import set_params
 from rra_agent.errors import RraError
 from rra_agent.node import encode_data
@@ -172,12 +173,14 @@ def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
         c["host"] = "h2" if c["name"] == "sink" else "local"
     (pkg / "system.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
 
+    h2_router = f"tcp/127.0.0.1:{free_port()}"
+
     def agent() -> subprocess.Popen[bytes]:
         return procs.python(
             "rra_agent", "agent", "--system", "relay_system", "--host", "h2",
             "--package", str(pkg), "--log-dir", str(tmp_path / "h2-logs"),
-            "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
-            name="agent-h2",
+            "--connect", bus.connect[0], "--listen", h2_router,
+            "--no-multicast", "--lease-ms", "500", name="agent-h2",
         )  # fmt: skip
 
     h2 = agent()

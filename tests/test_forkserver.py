@@ -37,7 +37,7 @@ def parent_of(pid: int) -> int:
 @pytest.fixture
 def host(tmp_path: Path):
     bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
-    hub = open_session(bus.as_hub())
+    hub = open_session(bus.host_router(hub=True))
     h = LocalHost("h", bus, tmp_path)
     try:
         yield h

@@ -13,10 +13,11 @@ import signal
 import pytest
 from conftest import RELAY as DATA
 from conftest import RELAY_KEYS as K
-from conftest import edit_yaml, package_copy
+from conftest import edit_yaml, package_copy, tcp_peers
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import wait_until
+from rra_agent.bus.config import free_port
 
 
 def test_measurement_change_swaps_rewires_and_sets_cv_parameter(system):
@@ -240,17 +241,36 @@ def test_nodes_are_placed_on_the_host_the_model_names(system, procs, bus, tmp_pa
             c["host"] = "h2" if c["name"] in ("sink", "filtered") else "local"
 
     edit_yaml(pkg / "system.yaml", place)
+    h2_router = free_port()
     procs.python(
         "rra_agent", "agent", "--system", "relay_system", "--host", "h2",
         "--package", str(pkg), "--log-dir", str(tmp_path / "h2-logs"),
-        "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
-        name="agent-h2",
+        "--connect", bus.connect[0], "--listen", f"tcp/127.0.0.1:{h2_router}",
+        "--no-multicast", "--lease-ms", "500", name="agent-h2",
     )  # fmt: skip
     sys_ = system(pkg)
     st = sys_.status
     hosts = {n["node"]: n["host"] for n in st["nodes"]}
     assert hosts["sink"] == "h2" and hosts["source"] == "local" and hosts["direct"] == "local"
     assert (tmp_path / "h2-logs" / "sink.log").exists()
+    # Each host has its router: h2's node is a client of h2's router, not of the hub.
+    assert tcp_peers(sys_.node(st, "sink")["pid"]) == {h2_router}
+    assert tcp_peers(sys_.node(st, "source")["pid"]) == {int(bus.connect[0].rsplit(":", 1)[1])}
     sys_.set_level(7.0)
     st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap across hosts")
     assert {n["node"]: n["host"] for n in st["nodes"]}["filtered"] == "h2"
+
+
+def test_a_host_router_refuses_plain_text_beyond_loopback_unless_insecure():
+    from rra_agent.bus.config import BusConfig
+    from rra_agent.errors import RraError
+
+    with pytest.raises(RraError, match="without TLS.*--insecure"):
+        BusConfig(listen=["tcp/0.0.0.0:7447"]).host_router(hub=True)
+    with pytest.raises(RraError, match="tcp/10.0.0.1:7447"):
+        BusConfig(connect=["tcp/10.0.0.1:7447"]).host_router(hub=False)
+    cfg = BusConfig(listen=["tcp/0.0.0.0:7447"], insecure=True).host_router(hub=True)
+    assert cfg.listen == ["tcp/0.0.0.0:7447"]  # the loopback hub endpoint is covered by it
+    assert cfg.local_client().connect == ["tcp/127.0.0.1:7447"]
+    ok = BusConfig(listen=["tls/0.0.0.0:7448"]).host_router(hub=False)
+    assert ok.local_client().connect == ["tls/127.0.0.1:7448"]

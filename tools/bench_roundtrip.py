@@ -359,7 +359,7 @@ def bench(args: argparse.Namespace) -> int:
     env = {BUS_ENV: child_bus.to_env(), "PYTHONUNBUFFERED": "1"}
     log_dir = Path(tempfile.mkdtemp(prefix="bench_roundtrip-"))
     children: list[Child] = []
-    session = zenoh.open(child_bus.as_hub().to_zenoh())
+    session = zenoh.open(child_bus.host_router(hub=True).to_zenoh())
     try:
         alive: set[str] = set()
 

@@ -76,12 +76,12 @@ class HostAgent:
     ) -> None:
         self.keys = Keys(system)
         self.host = check_chunk(host, "host")
-        #: Children connect with ``bus``; the agent itself listens on the hub endpoint if ``hub``.
-        self.bus = bus
-        self.session_bus = bus.as_hub() if hub else bus
+        #: This host's Zenoh router (run by this agent) and how its children connect to it.
+        self.session_bus = bus.host_router(hub=hub)
+        self.bus = self.session_bus.local_client()
         preload = {i.rpartition(".")[0] for i in (allowed or ()) if " " not in i and "." in i}
         self.local = LocalHost(
-            host, bus, log_dir, preload=sorted(preload), prober=self._probe_later
+            host, self.bus, log_dir, preload=sorted(preload), prober=self._probe_later
         )
         self.allowed = frozenset(allowed) if allowed is not None else None
         self.clock = clock
@@ -363,6 +363,12 @@ class HostAgent:
             self.loop.install_signals(on_signal=self._on_signal)
             self.loop.wake_on_sigchld()
             self.local.reap_orphans = True
+        if exposed := self.session_bus.exposed():
+            print(
+                f"rra agent {self.host}: WARNING: --insecure: plain-text links on "
+                f"{', '.join(exposed)}; anyone who reaches them can run this system",
+                flush=True,
+            )
         self.session = session = open_session(self.session_bus)
         try:
             self._publisher = session.declare_publisher(

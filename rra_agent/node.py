@@ -423,10 +423,9 @@ class NodeCore:
             self.node.on_active(active)
 
     def describe(self) -> m.NodeInfo:
-        impl = self.spec.implementation
         return m.NodeInfo(
             name=self.spec.name,
-            implementation=impl if isinstance(impl, str) else " ".join(impl.command),
+            implementation=m.implementation_id(self.spec.implementation),
             pid=self.pid,
             host=self.spec.host,
             active=self.active,

@@ -6,7 +6,9 @@ import os
 import signal
 import threading
 import time
+from pathlib import Path
 
+import msgspec
 import pytest
 import zenoh
 from conftest import pid_alive
@@ -14,10 +16,11 @@ from conftest import pid_alive
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.keys import Keys
-from rra_agent.models.system import Supervision
+from rra_agent.models.system import Command, Supervision
 from rra_agent.node import decode_data, encode_data
 
 SYSTEM = "hosttest"
+PACKAGE = Path(__file__).parent / "data" / "hosttest"
 K = Keys(SYSTEM)
 
 
@@ -54,12 +57,12 @@ class Watch:
 
 
 def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
+    kw.setdefault("implementation", "rra_agent.nodes.generic.Relay")
+    kw.setdefault("params", {"offset": 1.0})
     return m.NodeSpec(
         system=SYSTEM,
         name=name,
         host="h1",
-        implementation="rra_agent.nodes.generic.Relay",
-        params={"offset": 1.0},
         decl={"offset": m.ParamDecl(type="float", min=-10.0, max=10.0)},
         ports={
             "in": m.PortSpec(direction="subscribe", type="X", keys=[K.data("src")]),
@@ -74,7 +77,7 @@ def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
 def agent(procs, bus, tmp_path):
     proc = procs.python(
         "rra_agent.host.agent",
-        "--system", SYSTEM, "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
+        "--package", str(PACKAGE), "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
         name="agent",
     )  # fmt: skip
@@ -277,3 +280,76 @@ def cmdline(pid: int) -> str:
             return f.read().replace(b"\0", b" ").decode()
     except OSError:
         return ""
+
+
+TOOL = Command(
+    command=["python3", "-c", "import time; time.sleep(60)"], env={"TOOL_MODE": "safe"}, cwd="/tmp"
+)
+
+
+def test_only_what_the_model_declares_runs(agent, procs):
+    """Every attack on the host agent's start path is refused, counted and logged, and
+    starts nothing: an undeclared command, a declared one with an injected environment or
+    working directory, an undeclared or misplaced name, a path traversal, a parameter out
+    of its bounds, and a spec update smuggling a command in for the next restart."""
+    proc, client, watch = agent
+    start(client, watch, procs)
+    evil = Command(command=["id"])
+    attacks = [
+        m.StartNode(spec=relay_spec("relay", implementation=evil)),
+        m.StartNode(spec=relay_spec("tool", implementation=msgspec.structs.replace(
+            TOOL, env={**TOOL.env, "PYTHONWARNINGS": "ignore::0:os.system('id'):0"}))),
+        m.StartNode(spec=relay_spec("tool", implementation=msgspec.structs.replace(TOOL, cwd="/"))),
+        m.StartNode(spec=relay_spec("tool", implementation=msgspec.structs.replace(
+            TOOL, command=[*TOOL.command, "x"]))),
+        m.StartNode(spec=relay_spec("intruder")),
+        m.StartNode(spec=relay_spec("elsewhere")),
+        m.StartNode(spec=msgspec.structs.replace(relay_spec("relay2"), host="h2")),
+        m.StartNode(spec=msgspec.structs.replace(relay_spec("relay2"), system="other")),
+        m.StartNode(spec=relay_spec("..")),
+        m.StartNode(spec=relay_spec("../../../../tmp/x")),
+        m.StartNode(spec=relay_spec("relay2", params={"offset": 1e6})),
+        m.StartNode(spec=relay_spec("relay2", params={"undeclared": 1})),
+        m.UpdateSpec(specs=[relay_spec("relay", implementation=evil)]),
+        m.StopNode(node="../relay"),
+    ]  # fmt: skip
+    before = ok(client.host("h1", m.Stats())).get("rejected", 0)  # type: ignore[union-attr]
+    for attack in attacks:
+        reply = client.host("h1", attack)
+        assert isinstance(reply, m.Err) and reply.code == "denied", (attack, reply)
+    assert ok(client.host("h1", m.Stats()))["rejected"] == before + len(attacks)  # type: ignore[index]
+    listed = ok(client.host("h1", m.ListNodes()))
+    assert [n["node"] for n in listed] == ["relay"]  # type: ignore[union-attr]
+    assert proc.poll() is None
+    # The smuggled spec did not stick: a restart runs the declared implementation.
+    n = len(watch.states)
+    os.kill(listed[0]["pid"], signal.SIGKILL)  # type: ignore[index]
+    again = wait_until(lambda: watch.state("relay", "RUNNING", n), 15, "relay restarted")
+    procs.watch(again.pid)
+    assert again.implementation == "rra_agent.nodes.generic.Relay"
+    assert ok(client.node("relay", m.Describe()))["params"]["offset"] == 1.0  # type: ignore[index]
+
+
+def test_a_declared_command_runs_as_declared_and_is_not_disclosed(agent, procs):
+    _, client, watch = agent
+    spec = relay_spec("tool", implementation=TOOL, params={})
+    # A plain program never declares a liveliness token: it stays STARTING, which is enough.
+    pid = ok(client.host("h1", m.StartNode(spec=msgspec.structs.replace(spec, ports={}))))["pid"]  # type: ignore[index]
+    procs.watch(pid)
+    running = wait_until(lambda: watch.state("tool", "STARTING"), 10, "tool started")
+    assert running.pid == pid
+
+    def exec_done() -> list[bytes] | None:  # the fork server forks, then execs the command
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            if b"time.sleep(60)" not in f.read():
+                return None
+        with open(f"/proc/{pid}/environ", "rb") as f:
+            return f.read().split(b"\0")
+
+    environ = wait_until(exec_done, 10, "the declared command exec'd")
+    assert b"TOOL_MODE=safe" in environ
+    assert os.readlink(f"/proc/{running.pid}/cwd") == "/tmp"
+    listed = ok(client.host("h1", m.ListNodes()))
+    text = msgspec.json.encode(listed).decode()
+    assert "sleep" not in text and "TOOL_MODE" not in text
+    assert listed[0]["implementation"].startswith("command:")  # type: ignore[index]

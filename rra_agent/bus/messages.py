@@ -419,12 +419,25 @@ _STAMP = struct.Struct("<d")
 
 def spec_digest(spec: NodeSpec) -> str:
     """What a node is configured to be (implementation, host, parameters, wiring, active),
-    as a short hash: equal digests, equal configurations. The state to take over and the
-    fence are not part of it."""
+    as a short hash: equal digests, equal configurations. The state to take over, the fence
+    and the import path (each host derives it from its own copy of the package) are not
+    part of it."""
+    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[])
+    return _short_hash(fixed)
+
+
+def implementation_id(impl: Implementation | NodeSpec) -> str:
+    """How an implementation is shown on the bus: a Python class by its dotted path, an
+    external command by a hash (its command line and environment are not disclosed)."""
+    if isinstance(impl, NodeSpec):
+        impl = impl.implementation
+    return impl if isinstance(impl, str) else f"command:{_short_hash(impl)}"
+
+
+def _short_hash(obj: Any) -> str:
     import hashlib
 
-    fixed = msgspec.structs.replace(spec, state=None, fence=None)
-    return hashlib.blake2b(_DIGEST_ENC.encode(fixed), digest_size=8).hexdigest()
+    return hashlib.blake2b(_DIGEST_ENC.encode(obj), digest_size=8).hexdigest()
 
 
 _DIGEST_ENC = msgspec.msgpack.Encoder(order="sorted")

@@ -21,6 +21,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.deployment import Deployment, deploy
 from rra_agent.host.agent import HostAgent
+from rra_agent.host.catalog import Catalog
 from rra_agent.models.system import Command, Supervision
 
 ENGINES = ("monitor", "adaptation", "resolution")
@@ -142,8 +143,9 @@ def run(args: argparse.Namespace) -> int:
     specs = engine_specs(
         dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas
     )
-    allowed = set(dep.implementations) | {" ".join(s.implementation.command) for s in specs}  # type: ignore[union-attr]
-    agent = HostAgent(dep.system, args.host, bus, run_dir / "logs", hub=True, allowed=allowed)
+    catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
+    catalog.add_builtins(specs)
+    agent = HostAgent(dep.system, args.host, bus, run_dir / "logs", hub=True, catalog=catalog)
     agent.observers.append(_printer(args.quiet))
 
     def start_engines() -> None:

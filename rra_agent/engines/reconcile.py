@@ -67,11 +67,10 @@ def spec_from_info(info: dict[str, Any], template: m.NodeSpec) -> m.NodeSpec:
     }
     reported = info["implementation"]
     impl = template.implementation
-    impl_id = impl if isinstance(impl, str) else " ".join(impl.command)
     return msgspec.structs.replace(
         template,
         host=info["host"],
-        implementation=impl if reported == impl_id else reported,
+        implementation=impl if reported == m.implementation_id(impl) else reported,
         params=dict(info["params"]),
         ports=ports,
         active=bool(info["active"]),

@@ -648,7 +648,7 @@ class ResolutionEngine(EngineProcess):
     def status(self) -> dict[str, Any]:
         running, standby = self.executor.running, self.executor.standby
         desired = {
-            n: {"host": s.host, "implementation": str(s.implementation), "active": s.active,
+            n: {"host": s.host, "implementation": m.implementation_id(s), "active": s.active,
                 "standby": n in standby}
             for n, s in [*running.items(), *standby.items()]
         }  # fmt: skip

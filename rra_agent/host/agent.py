@@ -17,8 +17,11 @@ that sends them; one older than the newest fence accepted is refused (counted an
 ``StartNode`` of a node already running with the same spec and ``StopNode`` of a node that
 is not running succeed without doing anything, so a new leader can repeat a plan safely.
 
-It only starts implementations the system model declares: ``allowed`` is the set of
-implementations of the package it serves (None accepts any, for tests and tools).
+It only runs what its own copy of the system model declares (`rra_agent.host.catalog`): a
+request names a component and one of its declared implementations, and the command line,
+environment, working directory, import path, parameter bounds and supervision come from the
+model on this host; a name is a valid file name and key chunk. ``ListNodes`` and the
+``NodeState`` events show an external command only as a hash.
 
 Threading: Zenoh callbacks only post to the `MainLoop` (a bounded inbox: a flood of requests
 is answered "busy"); the main thread owns the supervisor and spawns every process (the
@@ -30,7 +33,7 @@ from __future__ import annotations
 import os
 import signal
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +47,8 @@ from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.election import Term, newer
+from rra_agent.errors import RraError
+from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.processes import LocalHost, process_state
 from rra_agent.host.supervisor import LIVE, Notice, State, StopPolicy, Supervisor, Transition
 
@@ -56,11 +61,6 @@ _ANY = m.Codec[Any](Any)
 INJECTABLE = frozenset({signal.SIGKILL, signal.SIGSTOP, signal.SIGCONT, signal.SIGTERM})
 
 
-def implementation_id(impl: m.NodeSpec | Any) -> str:
-    i = impl.implementation if isinstance(impl, m.NodeSpec) else impl
-    return i if isinstance(i, str) else " ".join(i.command)
-
-
 class HostAgent:
     def __init__(
         self,
@@ -70,7 +70,7 @@ class HostAgent:
         log_dir: str | Path,
         *,
         hub: bool = False,
-        allowed: Collection[str] | None = None,
+        catalog: Catalog,
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -79,11 +79,12 @@ class HostAgent:
         #: This host's Zenoh router (run by this agent) and how its children connect to it.
         self.session_bus = bus.host_router(hub=hub)
         self.bus = self.session_bus.local_client()
-        preload = {i.rpartition(".")[0] for i in (allowed or ()) if " " not in i and "." in i}
+        #: What this host may run (from its own copy of the system model).
+        self.catalog = catalog
+        preload = {i.rpartition(".")[0] for i in catalog.implementations if "." in i}
         self.local = LocalHost(
             host, self.bus, log_dir, preload=sorted(preload), prober=self._probe_later
         )
-        self.allowed = frozenset(allowed) if allowed is not None else None
         self.clock = clock
         self.supervisor = Supervisor(
             stop=stop, listener=self._on_transition, notices=self._on_notice
@@ -116,7 +117,7 @@ class HostAgent:
             state=t.state.value,  # type: ignore[arg-type]
             previous=t.previous.value,  # type: ignore[arg-type]
             pid=t.pid,
-            implementation=implementation_id(p.spec) if p else "",
+            implementation=m.implementation_id(p.spec) if p else "",
             active=p.spec.active if p else True,
             restarts=t.restarts,
             reason=t.reason,
@@ -205,7 +206,7 @@ class HostAgent:
     # ---- requests (main thread) ---------------------------------------------------------
     def _serve(self, query: zenoh.Query, request: m.HostRequest) -> None:
         try:
-            reply = self.handle(request)
+            reply = self.handle(request, trusted=False)
         except Exception as e:  # a bad request must never take the agent down
             reply = m.Err(message=f"{type(e).__name__}: {e}", code="error")
         query.reply(query.key_expr, _REPLY.encode(reply))
@@ -224,7 +225,14 @@ class HostAgent:
         self.fence = term
         return True
 
-    def handle(self, req: m.HostRequest) -> m.Reply:
+    def handle(self, req: m.HostRequest, *, trusted: bool = True) -> m.Reply:
+        """Serve one request. Only this process's own calls are ``trusted`` (``rra up``
+        starting its engines); a request from the bus is checked against the model."""
+        if not trusted:
+            try:
+                req = self._admitted(req)
+            except Refused as e:
+                return self._refuse("denied", str(e))
         fence = getattr(req, "fence", None)
         if not isinstance(req, m.Claim) and not self._admit(fence):
             return self._refuse(
@@ -259,6 +267,17 @@ class HostAgent:
                 return m.Ok(result={"accepted": accepted, "fence": list(self.fence or ())})
         return m.Err(message=f"unsupported request {type(req).__name__}", code="unsupported")
 
+    def _admitted(self, req: m.HostRequest) -> m.HostRequest:
+        """The request with every spec derived from the model (`Refused` if it may not)."""
+        match req:
+            case m.StartNode(spec=spec):
+                return msgspec.structs.replace(req, spec=self.catalog.admit(spec))
+            case m.UpdateSpec(specs=specs):
+                return msgspec.structs.replace(req, specs=[self.catalog.admit(s) for s in specs])
+            case m.StopNode(node=name) | m.SignalNode(node=name):
+                check_name(name)
+        return req
+
     def _fenced(self, spec: m.NodeSpec) -> m.NodeSpec:
         """The spec with this agent's newest fence (the node refuses older leaders too)."""
         if self.fence is None:
@@ -268,13 +287,6 @@ class HostAgent:
         )
 
     def _start(self, spec: m.NodeSpec) -> m.Reply:
-        try:
-            check_chunk(spec.name, "node name")
-        except ValueError as e:
-            return self._refuse("denied", str(e))
-        impl = implementation_id(spec)
-        if self.allowed is not None and impl not in self.allowed:
-            return self._refuse("denied", f"implementation {impl!r} is not declared")
         sup, now = self.supervisor, self.clock()
         spec = self._fenced(spec)
         p = sup.procs.get(spec.name)
@@ -310,7 +322,7 @@ class HostAgent:
                 host=self.host,
                 state=p.state.value,  # type: ignore[arg-type]
                 pid=p.pid,
-                implementation=implementation_id(p.spec),
+                implementation=m.implementation_id(p.spec),
                 active=p.spec.active,
                 restarts=p.restarts,
                 digest=m.spec_digest(p.spec),
@@ -411,9 +423,13 @@ class HostAgent:
 def configure(parser) -> None:  # argparse.ArgumentParser
     from rra_agent.bus.config import add_bus_arguments
 
-    parser.add_argument("--system", required=True, help="system name (key-expression prefix)")
+    parser.add_argument("--system", help="system name (checked against the package's)")
     parser.add_argument("--host", required=True, help="this host's name in the system model")
-    parser.add_argument("--package", help="serve only the implementations this package declares")
+    parser.add_argument(
+        "--package",
+        required=True,
+        help="the system package: this host runs only the components it places here",
+    )
     parser.add_argument("--log-dir", default="rra-logs", help="node logs go here")
     parser.add_argument(
         "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
@@ -424,14 +440,16 @@ def configure(parser) -> None:  # argparse.ArgumentParser
 def run(args) -> int:  # argparse.Namespace
     """``rra agent``: serve one host until SIGINT/SIGTERM."""
     from rra_agent.bus.config import bus_from_args
+    from rra_agent.deployment import deploy
 
-    allowed = None
-    if args.package:
-        from rra_agent.deployment import deploy
-
-        allowed = deploy(args.package).implementations
+    dep = deploy(args.package)
+    if args.system and args.system != dep.system:
+        raise RraError(f"--system {args.system}: the package's system is {dep.system}")
+    catalog = Catalog(
+        dep.configured, args.host, package_root=dep.package.root, default_host=args.hub
+    )
     agent = HostAgent(
-        args.system, args.host, bus_from_args(args), args.log_dir, hub=args.hub, allowed=allowed
+        dep.system, args.host, bus_from_args(args), args.log_dir, hub=args.hub, catalog=catalog
     )
     agent.run()
     return 0

@@ -1,0 +1,123 @@
+"""What a host agent may run: the components its system model places on its host.
+
+A host agent never runs what a request describes; it runs what the model declares. A
+``StartNode`` or ``UpdateSpec`` from the bus names a component and one of its declared
+implementations; `Catalog.admit` checks the request against the host's own copy of the
+Deployment-time Configured System Model (every run-time variant is in it) and returns the
+spec the host runs, whose command line, environment, working directory, import path,
+parameter declarations and supervision all come from the model on this host:
+
+- the system and the host are this agent's; the node name is a declared component (valid
+  as a file name and a key chunk: no path separators, no ``..``) placed on this host;
+- the implementation is one of the component's declared implementations, compared whole:
+  an external command with another argument, environment variable or working directory is
+  not the declared one;
+- every parameter is declared and within its declared type and bounds.
+
+Processes the host agent starts itself (``rra up``'s engines) are registered as built-ins;
+a request from the bus may not start or respecify them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import msgspec
+
+from rra_agent.bus import messages as m
+from rra_agent.bus.keys import check_chunk
+from rra_agent.models.system import Component, SystemModel, coerce_parameter
+
+
+class Refused(Exception):
+    """A request the model does not allow (the message says which rule)."""
+
+
+def check_name(name: str, what: str = "node name") -> str:
+    """A name used as a key chunk and as a file name (logs, heartbeats)."""
+    try:
+        check_chunk(name, what)
+    except ValueError as e:
+        raise Refused(str(e)) from None
+    if name.startswith("."):
+        raise Refused(f"{what} {name!r} may not start with '.'")
+    return name
+
+
+class Catalog:
+    """The components a host may run, from its own copy of the system model."""
+
+    def __init__(
+        self,
+        model: SystemModel,
+        host: str,
+        *,
+        package_root: str | Path,
+        default_host: bool = False,
+    ) -> None:
+        self.system = model.system
+        self.host = host
+        self.path = [str(Path(package_root).resolve())]
+        #: Components placed on this host (those without a host run on the first host).
+        self.components: dict[str, Component] = {
+            c.name: c
+            for c in model.components
+            if c.host == host or (c.host is None and default_host)
+        }
+        self.builtins: dict[str, m.NodeSpec] = {}
+
+    def add_builtins(self, specs: Iterable[m.NodeSpec]) -> None:
+        """Processes this host agent starts on its own (never from a request)."""
+        self.builtins.update((s.name, s) for s in specs)
+
+    @property
+    def implementations(self) -> frozenset[str]:
+        """Python implementations this host may run (the fork server pre-imports them)."""
+        return frozenset(
+            impl
+            for c in self.components.values()
+            for impl in (c.implementation, *c.implementations.values())
+            if isinstance(impl, str)
+        )
+
+    def admit(self, spec: m.NodeSpec) -> m.NodeSpec:
+        """The spec to run for this request, derived from the model; `Refused` if the model
+        does not allow it."""
+        name = check_name(spec.name)
+        if spec.system != self.system:
+            raise Refused(f"node {name}: system {spec.system!r} is not {self.system!r}")
+        if spec.host != self.host:
+            raise Refused(f"node {name}: host {spec.host!r} is not this host ({self.host})")
+        if name in self.builtins:
+            raise Refused(f"{name} is started by this host agent only")
+        c = self.components.get(name)
+        if c is None:
+            raise Refused(f"no component {name!r} is placed on host {self.host} by the model")
+        declared = (c.implementation, *c.implementations.values())
+        if spec.implementation not in declared:
+            raise Refused(
+                f"node {name}: implementation {m.implementation_id(spec.implementation)} is "
+                "not one the model declares for it"
+            )
+        impl = declared[declared.index(spec.implementation)]
+        decl = {
+            k: m.ParamDecl(type=p.type, min=p.min, max=p.max) for k, p in c.parameters.items()
+        }
+        for key, value in spec.params.items():
+            d = decl.get(key)
+            if d is None:
+                raise Refused(f"node {name}: parameter {key!r} is not declared")
+            if value is None:
+                continue  # not set: the node starts without it
+            try:
+                coerce_parameter(d.type, value, d.min, d.max)
+            except ValueError as e:
+                raise Refused(f"node {name}: parameter {key}: {e}") from None
+        return msgspec.structs.replace(
+            spec,
+            implementation=impl,
+            decl=decl,
+            supervision=c.supervision,
+            path=list(self.path) if isinstance(impl, str) else [],
+        )

@@ -1,0 +1,62 @@
+"""What a host agent derives from its own model for a request (rra_agent.host.catalog)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from rra_agent.bus import messages as m
+from rra_agent.deployment import deploy
+from rra_agent.host.catalog import Catalog, Refused
+from rra_agent.models.system import Command, Supervision
+
+PACKAGE = Path(__file__).parent / "data" / "hosttest"
+
+
+@pytest.fixture(scope="module")
+def catalog() -> Catalog:
+    dep = deploy(PACKAGE)
+    c = Catalog(dep.configured, "h1", package_root=PACKAGE)
+    c.add_builtins([m.NodeSpec(system="hosttest", name="resolution-a", host="h1",
+                               implementation=Command(command=["python3", "-m", "x"]))])  # fmt: skip
+    return c
+
+
+def request(name: str = "relay", **kw) -> m.NodeSpec:
+    kw.setdefault("implementation", "rra_agent.nodes.generic.Relay")
+    return m.NodeSpec(system="hosttest", name=name, host="h1", **kw)
+
+
+def test_everything_but_the_choice_comes_from_the_model(catalog):
+    asked = request(
+        params={"offset": 2.0},
+        path=["/tmp/evil"],  # an import path would let a request load any module
+        decl={"offset": m.ParamDecl(type="float", min=-1e9, max=1e9)},
+        supervision=Supervision(restart="never", heartbeat_timeout=0.0),
+    )
+    spec = catalog.admit(asked)
+    assert spec.path == [str(PACKAGE.resolve())]
+    assert spec.decl["offset"] == m.ParamDecl(type="float", min=-10.0, max=10.0)
+    assert spec.supervision == Supervision(heartbeat_timeout=1.0, probe_timeout=0.5)
+    assert spec.params == {"offset": 2.0}
+    assert m.spec_digest(spec) == m.spec_digest(msgspec.structs.replace(spec, path=["/else"]))
+
+
+@pytest.mark.parametrize(
+    ("spec", "why"),
+    [
+        (request("resolution-a"), "started by this host agent only"),
+        (request("tool"), "not one the model declares"),
+        (request("relay", implementation=Command(command=["id"])), "not one the model declares"),
+        (request("elsewhere"), "no component 'elsewhere' is placed on host h1"),
+        (request(".hidden"), "may not start with '.'"),
+        (request("a/b"), "cannot be used in a key expression"),
+        (request(params={"offset": 11.0}), "offset"),
+        (request(params={"offset": "x"}), "offset"),
+    ],
+)
+def test_refusals_say_which_rule(catalog, spec, why):
+    with pytest.raises(Refused, match=why):
+        catalog.admit(spec)

@@ -550,3 +550,24 @@ def test_the_json_twin_matches_the_uvl_file() -> None:
     assert {n: (f, a.value) for n, (f, a) in real.attributes.items()} == {
         n: (f, a.value) for n, (f, a) in twin.attributes.items()
     }
+
+
+def test_a_reachability_measurement_names_a_host_of_the_model(tmp_path: Path) -> None:
+    root = copy_mini(tmp_path)
+    meas = root / "measurements.yaml"
+    meas.write_text(meas.read_text() + "  - {name: RobotUp, type: bool, reachable: robot}\n")
+    assert errors_of(root) == []
+    text = plant(root, "measurements.yaml", "reachable: robot", "reachable: robbot")
+    (err,) = errors_of(root)
+    assert err.location == Location(str(meas), *position(text, "robbot"))
+    assert "unknown host 'robbot'" in err.message and "robot" in err.message
+
+
+def test_a_reachability_measurement_is_a_bool_without_function(tmp_path: Path) -> None:
+    root = copy_mini(tmp_path)
+    meas = root / "measurements.yaml"
+    meas.write_text(meas.read_text() + "  - {name: RobotUp, type: float, reachable: robot}\n")
+    with pytest.raises(
+        ModelError, match=r"measurements.yaml:\d+:\d+: a 'reachable' measurement is of type bool"
+    ):
+        errors_of(root)

@@ -86,6 +86,10 @@ class Keys:
         """The host agent's own liveliness token."""
         return f"{self.prefix}/hostagent/{check_chunk(host, 'host')}"
 
+    @property
+    def host_alive_all(self) -> str:
+        return f"{self.prefix}/hostagent/*"
+
     def host_ctl(self, host: str) -> str:
         return f"{self.prefix}/host/{check_chunk(host, 'host')}/ctl"
 

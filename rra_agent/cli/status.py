@@ -62,18 +62,25 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
             out["engine"] = reply.result
     except NoReply:
         pass
-    hosts = sorted(
+    present = {
         str(r.ok.key_expr).rsplit("/", 1)[-1]
-        for r in client.session.liveliness().get(f"{client.keys.prefix}/hostagent/*", timeout=1)
+        for r in client.session.liveliness().get(client.keys.host_alive_all, timeout=1)
         if r.ok is not None
-    )
-    for host in hosts:
+    }
+    # The model's hosts as the engine sees them (an unreachable one too), and any other agent.
+    hosts = sorted({*(out["engine"] or {}).get("hosts", {}), *present})
+    for host in sorted(present):
         try:
             reply = client.host(host, m.ListNodes(), timeout)
         except NoReply:
             continue
         if isinstance(reply, m.Ok):
             out["nodes"].extend(reply.result)
+    listed = {n["node"] for n in out["nodes"]}
+    for name, st in ((out["engine"] or {}).get("observed") or {}).items():
+        if name not in listed and st.get("host") not in present:
+            # On a host this client cannot reach: as the engine last heard of it.
+            out["nodes"].append({"node": name, **st, "state": f"{st['state']}?"})
     out["hosts"] = hosts
     out["stats"] = process_stats(client, timeout)
     return out

@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import msgspec
@@ -54,6 +55,7 @@ class ZenohActuator:
         stop_timeout: float = 10.0,
         request_timeout: float = 2.0,
         on_node_state: Any = None,
+        reachable: Callable[[str], bool] = lambda host: True,
     ) -> None:
         self.session = session
         self.keys = keys
@@ -62,6 +64,10 @@ class ZenohActuator:
         self.stop_timeout = stop_timeout
         self.request_timeout = request_timeout
         self.on_node_state = on_node_state
+        #: Whether a host's agent can be asked now; steps for other hosts are not sent but
+        #: listed in ``deferred`` as (host, what) (a partition is context, not a failure).
+        self.reachable = reachable
+        self.deferred: list[tuple[str, str]] = []
         self.cond = threading.Condition()
         self.seq = 0
         self.history: dict[str, list[tuple[int, m.NodeState]]] = {}
@@ -164,7 +170,18 @@ class ZenohActuator:
         return highest
 
     # ---- Actuator ----------------------------------------------------------------------
+    def _reachable(self, specs: list[m.NodeSpec], what: str) -> list[m.NodeSpec]:
+        """The specs whose host can be asked; the others are deferred."""
+        out = []
+        for spec in specs:
+            if self.reachable(spec.host):
+                out.append(spec)
+            else:
+                self.deferred.append((spec.host, f"{what} {spec.name}"))
+        return out
+
     def start(self, specs: list[m.NodeSpec]) -> None:
+        specs = self._reachable(specs, "start")
         mark = self._mark()
         sent: list[m.NodeSpec] = []
         waiting: list[m.NodeSpec] = []
@@ -203,6 +220,7 @@ class ZenohActuator:
                 self._host(spec, m.StopNode(node=spec.name), "stop")
 
     def stop(self, specs: list[m.NodeSpec]) -> None:
+        specs = self._reachable(specs, "stop")
         mark = self._mark()
         waiting: list[m.NodeSpec] = []
         try:
@@ -224,22 +242,32 @@ class ZenohActuator:
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         """All requests in flight at once (each get returns at once; then drain the replies),
         so a batch costs about one round trip. Successful spec changes are forwarded to the
-        host agents without waiting."""
+        host agents without waiting. A request to a node of an unreachable host is deferred
+        (answered ``Ok`` with no result here)."""
         handlers = [
             self.session.get(
                 self.keys.node_ctl(c.spec.name),
                 payload=_ANY.encode(self._fenced(c.request)),
                 timeout=self.request_timeout,
             )
+            if self.reachable(c.spec.host)
+            else None
             for c in batch
         ]
-        replies = [self._first_reply(h, c) for h, c in zip(handlers, batch, strict=True)]
+        replies = [
+            self._first_reply(h, c) if h is not None else self._defer(c)
+            for h, c in zip(handlers, batch, strict=True)
+        ]
         latest: dict[str, m.NodeSpec] = {}
         for c, rep in zip(batch, replies, strict=True):
             if isinstance(rep, m.Ok) and c.after is not None:
                 latest[c.spec.name] = c.after
         self._update(list(latest.values()))
         return replies
+
+    def _defer(self, c: Ctl) -> m.Reply:
+        self.deferred.append((c.spec.host, f"{c.request.__struct_config__.tag} {c.spec.name}"))
+        return m.Ok()
 
     def _first_reply(self, handler: Any, c: Ctl) -> m.Reply:
         out: m.Reply | None = None
@@ -278,7 +306,8 @@ class ZenohActuator:
         self._pending = [h for h in self._pending if h.try_recv() is None][-64:]
         by_host: dict[str, list[m.NodeSpec]] = {}
         for spec in specs:
-            by_host.setdefault(spec.host, []).append(spec)
+            if self.reachable(spec.host):
+                by_host.setdefault(spec.host, []).append(spec)
         for host, group in by_host.items():
             self._pending.append(
                 self.session.get(

@@ -12,6 +12,11 @@ computes from those (latest-value coalescing: both synchronisation policies only
 the newest sample of each source). A flood of samples on one source costs the others
 nothing but a dictionary write per sample, and is counted (``coalesced``).
 
+Partitions are context: a ``reachable: HOST`` measurement follows the liveliness token of
+that host's agent (gone when its link is lost, within the bus lease; back when it returns);
+each transition is published as a measurement and as an adaptation event
+(``host_unreachable`` / ``host_reachable``).
+
 Replicas: every replica computes every measurement (a hot standby); only the leader of the
 ``monitor`` role publishes. Every replica answers a query on ``rra/<system>/ctx/*`` with the
 newest value of each measurement, so a restarted Adaptation Engine resumes from them.
@@ -41,6 +46,7 @@ from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
+_EVT = m.Codec[m.EventMessage](m.EventMessage)
 
 
 def import_dotted(dotted: str) -> Any:
@@ -102,6 +108,13 @@ class MonitorProcess(EngineProcess):
         self._pending: dict[str, tuple[bytes, float]] = {}
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
+        #: Reachability measurements by host, and the hosts whose agent is reachable now.
+        self.reachability: dict[str, list[str]] = {}
+        for meas in dep.package.measurements.measurements:
+            if meas.reachable is not None:
+                self.reachability.setdefault(meas.reachable, []).append(meas.name)
+        self.reachable: dict[str, bool] = {}
+        self._events: zenoh.Publisher | None = None
 
     def source_key(self, source: str) -> str:
         ep = parse_endpoint(source)
@@ -160,6 +173,47 @@ class MonitorProcess(EngineProcess):
         if self.viz:
             self.viz.measurement(msg.name, msg.value, msg.stamp)
 
+    # ---- host reachability ----------------------------------------------------------------
+    def _on_host(self, sample: zenoh.Sample) -> None:
+        host = str(sample.key_expr).rsplit("/", 1)[-1]
+        alive = sample.kind == zenoh.SampleKind.PUT
+        self.loop.post(lambda: self._host_seen(host, alive))
+
+    def _host_seen(self, host: str, alive: bool) -> None:
+        """A host agent's token appeared or vanished: a new value when it changes."""
+        if host not in self.reachability or self.reachable.get(host) == alive:
+            return
+        first = host not in self.reachable
+        self.reachable[host] = alive
+        for name in self.reachability[host]:
+            self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))
+        if not first or not alive:
+            self._host_event(host, alive)
+
+    def _host_event(self, host: str, alive: bool) -> None:
+        if not self.leading or self._events is None:
+            return
+        ev = m.AdaptationEvent(
+            stamp=time.time(),
+            kind="host_reachable" if alive else "host_unreachable",
+            message=f"host {host} is {'reachable again' if alive else 'unreachable'}",
+            level="info" if alive else "warning",
+            source=self.name,
+        )
+        self._events.put(_EVT.encode(ev))
+
+    def _seed_hosts(self, session: zenoh.Session) -> None:
+        """The hosts whose agent is reachable at start; the others are unreachable."""
+        if not self.reachability:
+            return
+        present = {
+            str(reply.ok.key_expr).rsplit("/", 1)[-1]
+            for reply in session.liveliness().get(self.keys.host_alive_all, timeout=1.0)
+            if reply.ok is not None
+        }
+        for host in self.reachability:
+            self._host_seen(host, host in present)
+
     def extra_counters(self) -> dict[str, int]:
         return {"published": self.published, "failures": sum(self.core.failures.values())}
 
@@ -178,6 +232,14 @@ class MonitorProcess(EngineProcess):
             for src in self.core.sources
         ]
         entities.append(session.declare_queryable(self.keys.ctx_all, self._on_latest))
+        if self.reachability:
+            self._events = session.declare_publisher(
+                self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            entities.append(
+                session.liveliness().declare_subscriber(self.keys.host_alive_all, self._on_host)
+            )
+            self._seed_hosts(session)
         return entities
 
     def status(self) -> dict[str, Any]:

@@ -103,6 +103,8 @@ class ResolutionEngine(EngineProcess):
         self.version = 0
         # ---- what this replica knows of the running system ----
         self.observed: dict[str, m.NodeState] = {}
+        #: Hosts whose agent's liveliness token this replica sees (a partition hides it).
+        self.present: set[str] = set()
         self.unreachable: set[str] = set()
         #: Nodes whose live configuration is known to match: name -> pid.
         self.verified: dict[str, int] = {}
@@ -155,6 +157,10 @@ class ResolutionEngine(EngineProcess):
     def hosts(self) -> list[str]:
         return sorted({c.host or self.host for c in self.dep.configured.components})
 
+    def reachable(self, host: str) -> bool:
+        """Whether ``host``'s agent can be asked now (its token is seen here)."""
+        return host in self.present
+
     # ---- bus callbacks (Zenoh thread) ----------------------------------------------------
     def _on_selection(self, sample: zenoh.Sample) -> None:
         raw = sample.payload.to_bytes()
@@ -193,6 +199,14 @@ class ResolutionEngine(EngineProcess):
             return
         if isinstance(msg, m.NodeState):
             self.loop.post(lambda: self._node_state(msg))
+        elif not msg.source.startswith(NAME):  # host agents' and the monitor's events
+            self.loop.post(lambda: self._record(msg))
+
+    def _record(self, ev: m.AdaptationEvent) -> None:
+        if self.leading and self.sink is not None:
+            self.sink.record(ev)
+            if self.viz:
+                self.viz.event(ev)
 
     def _on_host(self, sample: zenoh.Sample) -> None:
         """A host agent appeared (or came back) or went away: reconcile soon."""
@@ -200,7 +214,8 @@ class ResolutionEngine(EngineProcess):
         alive = sample.kind == zenoh.SampleKind.PUT
 
         def seen() -> None:
-            (self.unreachable.discard if alive else self.unreachable.add)(host)
+            (self.present.add if alive else self.present.discard)(host)
+            self.unreachable = set(self.hosts) - self.present
             self._reconcile_soon = True
 
         self.loop.post(seen)
@@ -271,7 +286,9 @@ class ResolutionEngine(EngineProcess):
         names = [s.name for s in [*self.executor.running.values(), *self.executor.standby.values()]]
         if self.mirror is not None:
             names += [s.name for s in [*self.mirror.running, *self.mirror.standby]]
-        highest = self.actuator.claim(fence, self.hosts, sorted(set(names)))
+        highest = self.actuator.claim(
+            fence, [h for h in self.hosts if self.reachable(h)], sorted(set(names))
+        )
         if highest > fence.epoch:  # receivers know a newer leader: claim again above it
             self.election.observe_epoch(highest)
             return
@@ -519,7 +536,12 @@ class ResolutionEngine(EngineProcess):
             **{s.name: s for s in standby_specs},
             **expected,
         }
-        observed = observe(self.actuator.client, self.hosts, templates, known=known)
+        cut_off = {h for h in self.hosts if not self.reachable(h)}
+        observed = observe(
+            self.actuator.client, [h for h in self.hosts if h not in cut_off], templates,
+            known=known,
+        )  # fmt: skip
+        observed.unreachable |= cut_off
         self.unreachable = observed.unreachable
         self.observed.update(observed.states)
         candidates = {s.name for s in standby_specs}
@@ -662,9 +684,11 @@ class ResolutionEngine(EngineProcess):
             "running": {n: d for n, d in desired.items() if not d["standby"]},
             "standby": sorted(standby),
             "observed": {
-                n: {"state": st.state, "pid": st.pid, "host": st.host}
+                n: {"state": st.state, "pid": st.pid, "host": st.host, "restarts": st.restarts,
+                    "active": st.active, "implementation": st.implementation}
                 for n, st in self.observed.items()
-            },
+            },  # fmt: skip
+            "hosts": {h: h not in self.unreachable for h in self.hosts},
             "unreachable": sorted(self.unreachable),
             "applied": self.applied,
             "version": self.version if self.leading or self.mirror is None else self.mirror.version,
@@ -710,7 +734,15 @@ class ResolutionEngine(EngineProcess):
         self.viz = open_logger(self.name)
         log = self.run_dir / "events.jsonl" if self.run_dir else None
         self.sink = EventSink(session, self.keys.events, log)
-        self.actuator = ZenohActuator(session, self.keys, start_timeout=self.start_timeout)
+        self.actuator = ZenohActuator(
+            session, self.keys, start_timeout=self.start_timeout, reachable=self.reachable
+        )
+        self.present = {
+            str(reply.ok.key_expr).rsplit("/", 1)[-1]
+            for reply in session.liveliness().get(self.keys.host_alive_all, timeout=1.0)
+            if reply.ok is not None
+        }
+        self.unreachable = set(self.hosts) - self.present
         self.executor = Executor(
             self.actuator,
             self.keys,
@@ -729,7 +761,7 @@ class ResolutionEngine(EngineProcess):
             session.declare_subscriber(self.keys.selection, self._on_selection),
             session.declare_subscriber(self.keys.state(NAME), self._on_state),
             session.declare_subscriber(self.keys.events, self._on_event),
-            lv.declare_subscriber(f"{self.keys.prefix}/hostagent/*", self._on_host, history=True),
+            lv.declare_subscriber(self.keys.host_alive_all, self._on_host, history=True),
             lv.declare_subscriber(
                 f"{self.keys.lead('adaptation')}/*/*", self._on_adaptation_token, history=True
             ),
@@ -777,6 +809,21 @@ class ResolutionEngine(EngineProcess):
             self._next_reconcile = now + self.reconcile_period
             self.reconcile(reason if self.deployed else "deployment")
             self._take_latest()
+        self._report_deferred()
+
+    def _report_deferred(self) -> None:
+        """Steps left for unreachable hosts: one event; the reconcile loop applies them when
+        the host is back."""
+        deferred, self.actuator.deferred = self.actuator.deferred, []
+        if deferred:
+            hosts = sorted({h for h, _ in deferred})
+            self._event(
+                "deferred",
+                f"host(s) {', '.join(hosts)} unreachable: "
+                f"{'; '.join(what for _, what in deferred)} deferred until reconnection",
+                None,
+                level="warning",
+            )
 
     def stopping(self) -> None:
         self.actuator.close()

@@ -101,9 +101,7 @@ class Catalog:
                 "not one the model declares for it"
             )
         impl = declared[declared.index(spec.implementation)]
-        decl = {
-            k: m.ParamDecl(type=p.type, min=p.min, max=p.max) for k, p in c.parameters.items()
-        }
+        decl = {k: m.ParamDecl(type=p.type, min=p.min, max=p.max) for k, p in c.parameters.items()}
         for key, value in spec.params.items():
             d = decl.get(key)
             if d is None:

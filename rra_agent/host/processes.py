@@ -79,6 +79,8 @@ class LocalHost:
     ) -> None:
         self.name = name
         self.bus = bus
+        #: The bus configuration of each child (its identity: engine or node, its Zenoh id).
+        self.bus_for: Callable[[NodeSpec], BusConfig] = lambda spec: self.bus
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         #: Live node processes: pid -> node name.
@@ -199,7 +201,7 @@ class LocalHost:
     def _env(self, spec: NodeSpec) -> dict[str, str]:
         env = {
             SPEC_ENV: msgspec.json.encode(spec).decode(),
-            BUS_ENV: self.bus.to_env(),
+            BUS_ENV: self.bus_for(spec).to_env(),
             hb.ENV: self.heartbeats.allocate(spec.name),
             "PYTHONUNBUFFERED": "1",
         }

@@ -10,6 +10,12 @@ Multi-input measurements (the paper's first future-work item) list several ``sou
 synchronisation policy: ``latest`` (recompute on every input from the latest value of each)
 or ``window`` (recompute only when every input has a sample within ``window_ms`` of the newest).
 The function then receives one argument per source, in order.
+
+A measurement may instead be a host's reachability (``reachable: base_station``, type
+``bool``): true while that host's agent is reachable from the engines, false from the moment
+its link is lost (within the bus lease). The Context Monitor publishes it like any other, so
+rules can react to a partition (e.g. select an on-board planner when the base station is
+gone).
 """
 
 from __future__ import annotations
@@ -51,6 +57,8 @@ class Measurement(Model, frozen=True):
     source: str | None = None
     #: ... or several, for a multi-input measurement.
     sources: list[str] = []
+    #: ... or a host of the system model: true while it is reachable (type bool).
+    reachable: str | None = None
     #: Field of the source sample to take when there is no function (e.g. ``level``).
     field: str | None = None
     function: str | None = None
@@ -61,8 +69,16 @@ class Measurement(Model, frozen=True):
     description: str | None = None
 
     def __post_init__(self) -> None:
-        if (self.source is None) == (not self.sources):
-            raise ValueError("a measurement needs exactly one of 'source' and 'sources'")
+        given = (self.source is not None) + bool(self.sources) + (self.reachable is not None)
+        if given != 1:
+            raise ValueError(
+                "a measurement needs exactly one of 'source', 'sources' and 'reachable'"
+            )
+        if self.reachable is not None:
+            if self.type != "bool":
+                raise ValueError("a 'reachable' measurement is of type bool")
+            if self.field is not None or self.function is not None:
+                raise ValueError("a 'reachable' measurement has no field or function")
         for s in self.inputs:
             parse_endpoint(s)
         if len(self.inputs) > 1 and self.function is None:
@@ -72,6 +88,7 @@ class Measurement(Model, frozen=True):
 
     @property
     def inputs(self) -> list[str]:
+        """The ``component.port`` interfaces it is computed from (none for reachability)."""
         return [self.source] if self.source is not None else list(self.sources)
 
 

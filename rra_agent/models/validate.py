@@ -359,6 +359,12 @@ class _Checker:
 
     def check_measurement(self, i: int, m: Measurement) -> None:
         path: tuple[PathItem, ...] = ("measurements", i)
+        if m.reachable is not None:
+            hosts = {h.name for h in self.pkg.system.hosts}
+            if m.reachable not in hosts:
+                msg = unknown_name("host", m.reachable, hosts)
+                self.error("measurements", (*path, "reachable"), msg)
+            return
         ports: list[Port | None] = []
         for j, src in enumerate(m.inputs):
             where = (*path, "source") if m.source is not None else (*path, "sources", j)

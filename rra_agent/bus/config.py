@@ -21,16 +21,26 @@ so a frozen process loses its liveliness token in well under a second.
 
 A `BusConfig` is built from defaults, an optional YAML/JSON file (``--bus-config``) and CLI
 flags, in that order, and passed to child processes as JSON in ``RRA_BUS_CONFIG``.
+
+Security (`rra_agent.security`): ``--certs DIR`` gives a process its mTLS identity (`Tls`:
+the system CA and its role's certificate from ``rra certs``; Zenoh's ``transport/link/tls``
+settings, ``enable_mtls``) and makes the default endpoints ``tls/``. A node's session gets a
+fixed Zenoh id (`node_zid`), which the access-control configuration of its host's router
+names together with the node certificate. ``zenoh`` carries any other Zenoh setting verbatim
+(key path -> JSON value, e.g. ``access_control`` or ``transport/shared_memory/enabled``), so
+``--bus-config FILE`` accepts Zenoh's own TLS and ACL settings.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
+import re
 import socket
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import msgspec
 
@@ -38,6 +48,8 @@ from rra_agent.errors import RraError
 from rra_agent.models.base import Model
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
+#: The default hub once the process has certificates (``--certs``).
+TLS_HUB = "tls/127.0.0.1:7447"
 ENV_VAR = "RRA_BUS_CONFIG"
 #: Link protocols that authenticate and encrypt.
 SECURE_PROTOCOLS = ("tls/", "quic/")
@@ -76,7 +88,7 @@ def _without_shadowed(listen: list[str]) -> list[str]:
     wild = {(p, port) for p, h, port in map(_split, listen) if h in ("0.0.0.0", "::", "")}
     out: list[str] = []
     for ep in listen:
-        proto, host, port = _split(ep)
+        proto, _, port = _split(ep)
         if ep in out or (is_loopback(ep) and (proto, port) in wild):
             continue
         out.append(ep)
@@ -88,6 +100,38 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]
+
+
+_ZID = re.compile(r"^[1-9a-f][0-9a-f]{0,31}$")
+
+
+def node_zid(system: str, node: str) -> str:
+    """The fixed Zenoh id of node ``node`` of ``system``: 128 bits of a hash, lowercase hex
+    without leading zeros (what Zenoh accepts as ``id``); the ACL names it."""
+    digest = hashlib.sha256(f"rra/{system}/node/{node}".encode()).hexdigest()[:32]
+    return digest.lstrip("0") or "1"
+
+
+class Tls(Model, frozen=True):
+    """A process's mTLS identity (paths, made by ``rra certs``): the system CA it trusts and
+    its own certificate and private key, used both to listen and to connect."""
+
+    ca: str
+    cert: str
+    key: str
+
+    def zenoh_settings(self) -> dict[str, Any]:
+        """The Zenoh ``transport/link/tls`` settings of this identity, mutual TLS enabled."""
+        t = "transport/link/tls/"
+        return {
+            t + "root_ca_certificate": self.ca,
+            t + "listen_certificate": self.cert,
+            t + "listen_private_key": self.key,
+            t + "connect_certificate": self.cert,
+            t + "connect_private_key": self.key,
+            t + "enable_mtls": True,
+            t + "verify_name_on_connect": True,
+        }
 
 
 class BusConfig(Model, frozen=True):
@@ -105,9 +149,23 @@ class BusConfig(Model, frozen=True):
     #: Allow plain-text links beyond loopback (`check_exposure`); warned about at start.
     insecure: bool = False
 
+    #: This process's mTLS identity (``--certs``); needed for ``tls/`` endpoints.
+    tls: Tls | None = None
+    #: The Zenoh id of the session (hex, at most 32 digits); None = random. Nodes get a
+    #: fixed one (`node_zid`) so that their host's access control can tell them apart.
+    zid: str | None = None
+    #: Raw Zenoh settings, key path -> JSON value, inserted verbatim after rra's own (they
+    #: win): e.g. ``{"access_control": {...}, "transport/link/tls/enable_mtls": true}``.
+    zenoh: dict[str, Any] = {}
+
     def __post_init__(self) -> None:
         if self.lease_ms < 100:
             raise ValueError("lease_ms below 100 ms makes healthy peers time out")
+        if self.zid is not None and not _ZID.match(self.zid):
+            raise ValueError(
+                f"zid {self.zid!r} is not a Zenoh id (1 to 32 lowercase hex digits, no "
+                "leading zero)"
+            )
 
     @property
     def hub(self) -> str:
@@ -166,7 +224,42 @@ class BusConfig(Model, frozen=True):
         c.insert_json5("scouting/delay", "0")
         c.insert_json5("transport/link/tx/lease", json.dumps(self.lease_ms))
         c.insert_json5("timestamping/enabled", "true")
+        if self.tls is not None:
+            for key, value in self.tls.zenoh_settings().items():
+                c.insert_json5(key, json.dumps(value))
+        elif not any(k.startswith("transport") for k in self.zenoh):
+            tls = [ep for ep in (*self.listen, *self.connect) if ep.startswith("tls/")]
+            if tls:
+                raise RraError(
+                    f"{', '.join(tls)} needs certificates: pass --certs DIR (from `rra certs`)"
+                )
+        if self.zid is not None:
+            c.insert_json5("id", json.dumps(self.zid))
+        for key, value in self.zenoh.items():
+            try:
+                c.insert_json5(key, json.dumps(value))
+            except zenoh.ZError as e:
+                raise RraError(f"bus config: zenoh setting {key!r}: {e}") from None
         return c
+
+    def with_identity(self, certs_dir: str | Path, role: str) -> BusConfig:
+        """This config with the mTLS identity of ``role`` from a folder of ``rra certs``:
+        ``DIR/ca.pem``, ``DIR/<role>.pem``, ``DIR/<role>.key`` (a host folder with role
+        ``agent``, ``engine`` or ``node``; the operator folder with role ``operator``)."""
+        folder = Path(certs_dir).expanduser().resolve()
+        paths = {
+            "ca": folder / "ca.pem",
+            "cert": folder / f"{role}.pem",
+            "key": folder / f"{role}.key",
+        }
+        missing = [p.name for p in paths.values() if not p.is_file()]
+        if missing:
+            raise RraError(
+                f"no {role} identity in {folder} ({', '.join(missing)} missing): make it with "
+                "`rra certs PKG --out DIR` and pass DIR/<host> (DIR/operator for the tools)"
+            )
+        tls = Tls(**{k: str(v) for k, v in paths.items()})
+        return msgspec.structs.replace(self, tls=tls)
 
     def to_env(self) -> str:
         return msgspec.json.encode(self).decode()
@@ -221,6 +314,12 @@ def add_bus_arguments(parser) -> None:  # argparse.ArgumentParser
     g.add_argument("--multicast", action=argparse.BooleanOptionalAction, default=None)
     g.add_argument("--lease-ms", type=int, metavar="MS", help="liveliness/transport lease")
     g.add_argument(
+        "--certs",
+        metavar="DIR",
+        help="certificate folder from `rra certs` (this host's DIR/<host>, or DIR/operator "
+        "for the tools): mutual TLS, tls/ default endpoints",
+    )
+    g.add_argument(
         "--insecure",
         action="store_true",
         default=None,
@@ -229,15 +328,30 @@ def add_bus_arguments(parser) -> None:  # argparse.ArgumentParser
     )
 
 
-def bus_from_args(args) -> BusConfig:  # argparse.Namespace
-    """Defaults, then $RRA_BUS_CONFIG, then --bus-config FILE, then the flags."""
+def bus_from_args(args, role: str = "operator") -> BusConfig:  # argparse.Namespace
+    """Defaults, then $RRA_BUS_CONFIG, then --bus-config FILE, then the flags.
+
+    ``--certs DIR`` gives the process the identity of ``role`` (``operator`` for the tools,
+    ``agent`` for a host agent) and turns the default endpoints into ``tls/`` ones: the
+    default hub becomes `TLS_HUB`, and a host agent that is not the hub (``args.hub``
+    false) listens on `TLS_HUB` unless told otherwise. Explicit endpoints are left alone.
+    """
     cfg = BusConfig.from_env()
     if getattr(args, "bus_config", None):
         cfg = BusConfig.load(args.bus_config)
-    return cfg.override(
+    cfg = cfg.override(
         listen=args.listen,
         connect=args.connect,
         multicast=args.multicast,
         lease_ms=args.lease_ms,
         insecure=getattr(args, "insecure", None),
     )
+    certs = getattr(args, "certs", None)
+    if not certs:
+        return cfg
+    cfg = cfg.with_identity(certs, role)
+    connect = [TLS_HUB if ep == DEFAULT_HUB else ep for ep in cfg.connect]
+    listen = [TLS_HUB if ep == DEFAULT_HUB else ep for ep in cfg.listen]
+    if role == "agent" and not listen and getattr(args, "hub", True) is False:
+        listen = [TLS_HUB]
+    return cfg.override(listen=listen, connect=connect)

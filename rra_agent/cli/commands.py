@@ -232,6 +232,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.scenario.cli:configure", p),
         lazy("rra_agent.scenario.cli:run"),
     ),
+    "certs": Command(
+        "make the system CA and the mTLS certificates of every host and role",
+        lambda p: _configure("rra_agent.cli.certs:configure", p),
+        lazy("rra_agent.cli.certs:run"),
+    ),
 }
 
 

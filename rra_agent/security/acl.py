@@ -1,0 +1,242 @@
+"""The Zenoh access-control configuration of a host's router, generated from the system model.
+
+Trust model (federated): every host runs one Zenoh router inside its host agent, and every
+other process of the host (nodes, engines, tools) is a client of that router over loopback
+TLS. Each router therefore enforces the rules for *its own* clients; the links between
+routers (authenticated by their ``agent.<host>`` certificates) are trusted for everything,
+as each side has already filtered what its clients may send. The host agent's own session is
+the router's, and Zenoh applies access control only to remote transports: the host agent is
+not filtered (measured, zenoh 1.10: its queryable, queries and liveliness subscriber work
+under ``default_permission: deny``).
+
+Subjects (Zenoh ``access_control/subjects``; certificate common names need TLS links):
+
+- ``agent.<h>`` for every host h of the system: everything (``**``);
+- ``engine.<host>`` (the engines this host runs): everything under ``rra/<system>/**``;
+- ``operator`` (``rra status``/``param``/``events``, ``rra up``'s control, scenario
+  injections): queries to engine control (``engine/**``), puts and queries on ``inject/**``,
+  and read-only access (subscribe, liveliness subscribe and query, query) to ``events``,
+  ``selection``, ``state``, ``ctx``, ``alive``, ``member``, ``lead``, ``hostagent`` and
+  ``data``. Never host or node control: those only the engines may call;
+- one subject per node this host may run, matching the certificate ``node.<host>`` AND the
+  node's fixed Zenoh id (`rra_agent.bus.config.node_zid`): Zenoh combines the fields of one
+  subject with AND (a ``node.<host>`` certificate with another id, or another certificate
+  with this id, is not this node; verified in tests/test_security.py).
+
+A node may (keys of `rra_agent.bus.keys`, every run-time variant of the Deployment-time
+Configured System Model included: every component, optional run-time ones too, and every
+connection, optional run-time ones too; transformations neither add ports nor move
+components between hosts):
+
+- put on the keys of its own publisher ports (``data/<topic>``), and be told of the
+  subscribers declared on ``data/**`` (a declared Zenoh publisher sends nothing until it
+  knows of a matching subscriber; measured: without this, nothing a node published arrived);
+- declare subscribers on the keys its subscriber ports can ever be wired to, and on
+  ``inject/**`` (`rra_agent.node.NodeContext.subscribe`'s documented use, fault injection),
+  and receive puts and deletes there;
+- declare its control queryable ``node/<name>/ctl``, receive queries there and reply;
+- declare its liveliness token ``alive/<host>/<name>``.
+
+A component without a ``host`` runs where the Run-time Resolution Engine's leader runs,
+which may be any host, so every host's router admits it. Everything else is denied
+(``default_permission: deny``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from rra_agent.bus.config import node_zid
+from rra_agent.bus.keys import Keys
+from rra_agent.core.resolution import topic_of
+from rra_agent.deployment import Deployment
+from rra_agent.models.system import Component, SystemModel, parse_endpoint
+from rra_agent.security.certs import OPERATOR, common_name
+
+#: Every message type Zenoh's access control filters (zenoh 1.10 rejects anything else).
+ALL_MESSAGES = (
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+)
+#: What a reader asks for (ingress) and what it is then sent (egress).
+_READ_IN = ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query")
+_READ_OUT = ("put", "delete", "reply", "liveliness_token")
+#: Keys the operator may read: everything but control.
+_OPERATOR_READS = (
+    "events",
+    "selection",
+    "state/**",
+    "ctx/**",
+    "alive/**",
+    "member/**",
+    "lead/**",
+    "hostagent/**",
+    "data/**",
+)
+#: A host with no name in the model.
+DEFAULT_HOST = "local"
+
+
+def system_hosts(dep: Deployment) -> list[str]:
+    """Every host a system may run on: the hosts the template and configured models declare
+    and the ``host`` of every component; ``[DEFAULT_HOST]`` for a model that names none."""
+    names: set[str] = set()
+    for model in (dep.package.system, dep.configured):
+        names.update(h.name for h in model.hosts)
+        names.update(c.host for c in model.components if c.host)
+    return sorted(names) or [DEFAULT_HOST]
+
+
+@dataclass(frozen=True)
+class NodeKeys:
+    """The keys one node may ever use, over every run-time variant."""
+
+    name: str
+    host: str
+    publish: tuple[str, ...]
+    subscribe: tuple[str, ...]
+    ctl: str
+    alive: str
+
+
+def node_keys(model: SystemModel, component: Component, host: str) -> NodeKeys:
+    """What component ``component`` of ``model``, run on ``host``, may publish and subscribe
+    to: its publisher ports' topics, and the topics of every connection (optional ones too)
+    that can feed one of its subscriber ports."""
+    keys = Keys(model.system)
+    publish = [
+        keys.data(topic_of(model, component.name, p.name))
+        for p in component.ports
+        if p.direction == "publish"
+    ]
+    subscribe: list[str] = []
+    for conn in model.connections:
+        dst = parse_endpoint(conn.target)
+        if dst.component == component.name:
+            src = parse_endpoint(conn.source)
+            key = keys.data(topic_of(model, src.component, src.port))
+            if key not in subscribe:
+                subscribe.append(key)
+    return NodeKeys(
+        name=component.name,
+        host=host,
+        publish=tuple(dict.fromkeys(publish)),
+        subscribe=tuple(subscribe),
+        ctl=keys.node_ctl(component.name),
+        alive=keys.alive(host, component.name),
+    )
+
+
+def _rule(
+    rule_id: str, messages: Iterable[str], flow: str | Iterable[str], key_exprs: Iterable[str]
+) -> dict[str, Any]:
+    return {
+        "id": rule_id,
+        "messages": list(messages),
+        "flows": [flow] if isinstance(flow, str) else list(flow),
+        "permission": "allow",
+        "key_exprs": list(key_exprs),
+    }
+
+
+class _Acl:
+    """Collects rules, subjects and policies, one policy per subject."""
+
+    def __init__(self) -> None:
+        self.rules: list[dict[str, Any]] = []
+        self.subjects: list[dict[str, Any]] = []
+        self.policies: list[dict[str, Any]] = []
+
+    def grant(self, subject: dict[str, Any], rules: list[dict[str, Any]]) -> None:
+        rules = [r for r in rules if r["key_exprs"]]
+        if not rules:
+            return
+        self.subjects.append(subject)
+        self.rules += rules
+        self.policies.append(
+            {
+                "id": subject["id"],
+                "rules": [r["id"] for r in rules],
+                "subjects": [subject["id"]],
+            }
+        )
+
+    def config(self) -> dict[str, Any]:
+        return {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": self.rules,
+            "subjects": self.subjects,
+            "policies": self.policies,
+        }
+
+
+def _node_rules(n: NodeKeys, keys: Keys) -> list[dict[str, Any]]:
+    reads = [*n.subscribe, keys.inject_all]
+    # a declared publisher sends only where it knows of a subscriber: a node with outputs
+    # is told of the subscribers on data keys (wildcard readers such as an operator's too)
+    matching = [f"{keys.prefix}/data/**"] if n.publish else []
+    p = f"node:{n.name}/"
+    return [
+        _rule(p + "publish", ["put"], "ingress", n.publish),
+        _rule(p + "publish-matching", ["declare_subscriber"], "egress", matching),
+        _rule(p + "subscribe", ["declare_subscriber"], "ingress", reads),
+        _rule(p + "receive", ["put", "delete"], "egress", reads),
+        _rule(p + "control", ["declare_queryable", "reply"], "ingress", [n.ctl]),
+        _rule(p + "control-queries", ["query"], "egress", [n.ctl]),
+        _rule(p + "alive", ["liveliness_token"], "ingress", [n.alive]),
+    ]
+
+
+def _operator_rules(keys: Keys) -> list[dict[str, Any]]:
+    control = [f"{keys.prefix}/engine/**", keys.inject_all]
+    reads = [f"{keys.prefix}/{k}" for k in _OPERATOR_READS]
+    return [
+        _rule("operator/control", ["query"], "ingress", control),
+        _rule("operator/control-replies", ["reply"], "egress", control),
+        _rule("operator/inject", ["put"], "ingress", [keys.inject_all]),
+        _rule("operator/read", _READ_IN, "ingress", reads),
+        _rule("operator/read-replies", _READ_OUT, "egress", reads),
+    ]
+
+
+def access_control(dep: Deployment, host: str) -> dict[str, Any]:
+    """The Zenoh ``access_control`` object of host ``host``'s router (see the module doc)."""
+    model = dep.configured
+    keys = Keys(model.system)
+    acl = _Acl()
+    hosts = sorted({*system_hosts(dep), host})
+    acl.grant(
+        {"id": "routers", "cert_common_names": [common_name("agent", h) for h in hosts]},
+        [_rule("routers/all", ALL_MESSAGES, ["ingress", "egress"], ["**"])],
+    )
+    acl.grant(
+        {"id": "engines", "cert_common_names": [common_name("engine", host)]},
+        [_rule("engines/all", ALL_MESSAGES, ["ingress", "egress"], [keys.everything])],
+    )
+    acl.grant(
+        {"id": "operator", "cert_common_names": [OPERATOR]},
+        _operator_rules(keys),
+    )
+    for c in model.components:
+        if c.host not in (None, host):
+            continue
+        n = node_keys(model, c, host)
+        acl.grant(
+            {
+                "id": f"node:{c.name}",
+                "cert_common_names": [common_name("node", host)],
+                "zids": [node_zid(model.system, c.name)],
+            },
+            _node_rules(n, keys),
+        )
+    return acl.config()

@@ -19,8 +19,10 @@ PACKAGE = Path(__file__).parent / "data" / "hosttest"
 def catalog() -> Catalog:
     dep = deploy(PACKAGE)
     c = Catalog(dep.configured, "h1", package_root=PACKAGE)
-    c.add_builtins([m.NodeSpec(system="hosttest", name="resolution-a", host="h1",
-                               implementation=Command(command=["python3", "-m", "x"]))])  # fmt: skip
+    engine = Command(command=["python3", "-m", "x"])
+    c.add_builtins(
+        [m.NodeSpec(system="hosttest", name="resolution-a", host="h1", implementation=engine)]
+    )
     return c
 
 

@@ -265,9 +265,9 @@ def test_a_host_router_refuses_plain_text_beyond_loopback_unless_insecure():
     from rra_agent.bus.config import BusConfig
     from rra_agent.errors import RraError
 
-    with pytest.raises(RraError, match="without TLS.*--insecure"):
+    with pytest.raises(RraError, match=r"without TLS.*--insecure"):
         BusConfig(listen=["tcp/0.0.0.0:7447"]).host_router(hub=True)
-    with pytest.raises(RraError, match="tcp/10.0.0.1:7447"):
+    with pytest.raises(RraError, match=r"tcp/10\.0\.0\.1:7447"):
         BusConfig(connect=["tcp/10.0.0.1:7447"]).host_router(hub=False)
     cfg = BusConfig(listen=["tcp/0.0.0.0:7447"], insecure=True).host_router(hub=True)
     assert cfg.listen == ["tcp/0.0.0.0:7447"]  # the loopback hub endpoint is covered by it

@@ -29,6 +29,9 @@ class NoReply(RraError):
 class BusClient:
     def __init__(self, bus: BusConfig, system: str, session: zenoh.Session | None = None):
         self.keys = Keys(system)
+        #: A client with a certificate (``--certs``) is an operator: the access control lets
+        #: it call the engines, not host or node control, so it asks the engines instead.
+        self.restricted = bus is not None and bus.tls is not None
         self._own = session is None
         self.session = session if session is not None else open_session(bus, wait_connected=True)
 

@@ -67,6 +67,12 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         for r in client.session.liveliness().get(client.keys.host_alive_all, timeout=1)
         if r.ok is not None
     }
+    if client.restricted:  # an operator: what the engine observes, its counters
+        out["hosts"] = sorted({*(out["engine"] or {}).get("hosts", {}), *present})
+        for name, st in ((out["engine"] or {}).get("observed") or {}).items():
+            out["nodes"].append({"node": name, **st})
+        out["stats"] = process_stats(client, timeout, families=("engine",))
+        return out
     # The model's hosts as the engine sees them (an unreachable one too), and any other agent.
     hosts = sorted({*(out["engine"] or {}).get("hosts", {}), *present})
     for host in sorted(present):
@@ -86,11 +92,13 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
     return out
 
 
-def process_stats(client: BusClient, timeout: float = 1.0) -> dict[str, dict[str, Any]]:
+def process_stats(
+    client: BusClient, timeout: float = 1.0, families: tuple[str, ...] = ("node", "host")
+) -> dict[str, dict[str, Any]]:
     """Every process's counters (`ProcessStats`) by name: one query to all at once."""
     out: dict[str, dict[str, Any]] = {}
     codec = m.Codec[m.Reply](m.Reply)
-    for key in (f"{client.keys.prefix}/node/*/ctl", f"{client.keys.prefix}/host/*/ctl"):
+    for key in (f"{client.keys.prefix}/{family}/*/ctl" for family in families):
         for reply in client.session.get(
             key,
             payload=m.Codec[Any](Any).encode(m.Stats()),
@@ -291,6 +299,22 @@ def set_params(
     return reply.result  # type: ignore[union-attr]
 
 
+def engine_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[str, Any]:
+    """A node's parameters in the Run-time Configured System Model (the engine's state)."""
+    try:
+        wait_for_leader(client, timeout)
+        reply = client.request(client.keys.engine_ctl("resolution"), m.GetState(), timeout)
+    except (TimeoutError, NoReply):
+        raise RraError(f"no Run-time Resolution Engine leads {client.keys.system!r}") from None
+    if not isinstance(reply, m.Ok):
+        raise RraError(f"{node}: {reply.message}")  # type: ignore[union-attr]
+    state = msgspec.convert(reply.result, m.EngineState)
+    spec = next((s for s in (*state.running, *state.standby) if s.name == node), None)
+    if spec is None:
+        raise RraError(f"no running node {node!r} in system {client.keys.system!r}")
+    return dict(spec.params)
+
+
 def run_param(args: argparse.Namespace) -> int:
     """Set parameters of a running node (or print them all when none is given)."""
     values = parse_assignments(args.values)
@@ -298,6 +322,8 @@ def run_param(args: argparse.Namespace) -> int:
         if values or args.reset:
             result = set_params(client, args.node, values, args.reset)
             params = {**result.get("params", {}), **{n: "(model value)" for n in args.reset}}
+        elif client.restricted:  # an operator may not call a node: the engine's model
+            params = engine_params(client, args.node)
         else:
             try:  # the router may still be telling this new client about the tokens
                 wait_until(

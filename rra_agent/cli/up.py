@@ -20,7 +20,7 @@ from pathlib import Path
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.deployment import Deployment, deploy
-from rra_agent.host.agent import HostAgent
+from rra_agent.host.agent import HostAgent, security
 from rra_agent.host.catalog import Catalog
 from rra_agent.models.system import Command, Supervision
 
@@ -124,7 +124,7 @@ def _printer(quiet: bool):
 def run(args: argparse.Namespace) -> int:
     names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
     dep = deploy(args.package, names)
-    bus: BusConfig = bus_from_args(args)
+    bus: BusConfig = bus_from_args(args, role="agent")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -145,7 +145,15 @@ def run(args: argparse.Namespace) -> int:
     )
     catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
     catalog.add_builtins(specs)
-    agent = HostAgent(dep.system, args.host, bus, run_dir / "logs", hub=True, catalog=catalog)
+    agent = HostAgent(
+        dep.system,
+        args.host,
+        bus,
+        run_dir / "logs",
+        hub=True,
+        catalog=catalog,
+        **security(args, dep, args.host),
+    )
     agent.observers.append(_printer(args.quiet))
 
     def start_engines() -> None:

@@ -683,11 +683,7 @@ class ResolutionEngine(EngineProcess):
             "desired": desired,
             "running": {n: d for n, d in desired.items() if not d["standby"]},
             "standby": sorted(standby),
-            "observed": {
-                n: {"state": st.state, "pid": st.pid, "host": st.host, "restarts": st.restarts,
-                    "active": st.active, "implementation": st.implementation}
-                for n, st in self.observed.items()
-            },  # fmt: skip
+            "observed": {n: _observed(st) for n, st in self.observed.items()},
             "hosts": {h: h not in self.unreachable for h in self.hosts},
             "unreachable": sorted(self.unreachable),
             "applied": self.applied,
@@ -831,6 +827,18 @@ class ResolutionEngine(EngineProcess):
             self.sink.close()
         if self.viz:
             self.viz.close()
+
+
+def _observed(st: m.NodeState) -> dict[str, Any]:
+    """A node as its host agent last reported it (``rra status`` shows it)."""
+    return {
+        "state": st.state,
+        "pid": st.pid,
+        "host": st.host,
+        "restarts": st.restarts,
+        "active": st.active,
+        "implementation": st.implementation,
+    }
 
 
 def _durations(

@@ -41,7 +41,7 @@ import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.config import BusConfig
+from rra_agent.bus.config import BusConfig, node_zid
 from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
 from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
@@ -71,20 +71,30 @@ class HostAgent:
         *,
         hub: bool = False,
         catalog: Catalog,
+        certs: str | Path | None = None,
+        access_control: dict[str, Any] | None = None,
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.keys = Keys(system)
         self.host = check_chunk(host, "host")
         #: This host's Zenoh router (run by this agent) and how its children connect to it.
-        self.session_bus = bus.host_router(hub=hub)
-        self.bus = self.session_bus.local_client()
+        router = bus.host_router(hub=hub)
+        self.bus = router.local_client()
+        if access_control is not None:
+            router = msgspec.structs.replace(
+                router, zenoh={**router.zenoh, "access_control": access_control}
+            )
+        self.session_bus = router
+        #: The folder of this host's certificates (``rra certs``): each child's identity.
+        self.certs = certs
         #: What this host may run (from its own copy of the system model).
         self.catalog = catalog
         preload = {i.rpartition(".")[0] for i in catalog.implementations if "." in i}
         self.local = LocalHost(
             host, self.bus, log_dir, preload=sorted(preload), prober=self._probe_later
         )
+        self.local.bus_for = self._child_bus
         self.clock = clock
         self.supervisor = Supervisor(
             stop=stop, listener=self._on_transition, notices=self._on_notice
@@ -103,6 +113,16 @@ class HostAgent:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._interrupts = 0
+
+    def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
+        """A child's bus identity: the engine or node certificate of this host, and for a
+        node its fixed Zenoh id (the access control names both)."""
+        if self.certs is None:
+            return self.bus
+        if spec.name in self.catalog.builtins:
+            return self.bus.with_identity(self.certs, "engine")
+        cfg = self.bus.with_identity(self.certs, "node")
+        return msgspec.structs.replace(cfg, zid=node_zid(self.keys.system, spec.name))
 
     def request_stop(self, *_: Any) -> None:
         self.loop.request_stop()
@@ -420,6 +440,16 @@ class HostAgent:
             self._tick(self.clock())
 
 
+def security(args, dep, host: str) -> dict[str, Any]:  # argparse.Namespace, Deployment
+    """With ``--certs``: the certificate folder and the access control of this host's router,
+    generated from the model."""
+    if not getattr(args, "certs", None):
+        return {}
+    from rra_agent.security.acl import access_control
+
+    return {"certs": args.certs, "access_control": access_control(dep, host)}
+
+
 def configure(parser) -> None:  # argparse.ArgumentParser
     from rra_agent.bus.config import add_bus_arguments
 
@@ -449,7 +479,13 @@ def run(args) -> int:  # argparse.Namespace
         dep.configured, args.host, package_root=dep.package.root, default_host=args.hub
     )
     agent = HostAgent(
-        dep.system, args.host, bus_from_args(args), args.log_dir, hub=args.hub, catalog=catalog
+        dep.system,
+        args.host,
+        bus_from_args(args, role="agent"),
+        args.log_dir,
+        hub=args.hub,
+        catalog=catalog,
+        **security(args, dep, args.host),
     )
     agent.run()
     return 0

@@ -279,3 +279,21 @@ def test_swapped_out_node_kept_as_standby_is_deactivated_for_the_way_back(quad):
     assert not any(c[0] == "start" for c in act.calls)
     assert ("active", "controller", True) in act.calls
     assert set(ex.standby) == {"proploss_controller"}
+
+
+def test_an_outgoing_standby_node_is_kept_when_its_replacement_starts_cold(quad):
+    """The controller is a standby replacement, Proploss is not: swapping to Proploss (its
+    strategy stop-then-start) must not stop the controller, which stays for the way back;
+    Proploss then starts inactive and takes over in the switch."""
+    _, target = quad
+    act = FakeActuator()
+    rep = Replacement(components={"controller": "standby"})
+    ex = Executor(act, K, rep, default_host="local")
+    deploy(ex, act, target("Standard"))
+    act.calls.clear()
+    assert ex.execute(swap_plan(target)).ok
+    assert not any(c[:2] == ("stop", "controller") for c in act.calls), act.calls
+    assert ("start", "proploss_controller", False, None) in act.calls
+    assert ("active", "proploss_controller", True) in act.calls
+    assert ("active", "controller", False) in act.calls
+    assert set(ex.standby) == {"controller"}

@@ -335,6 +335,12 @@ class Executor:
         strategy = self.replacement.strategy_for(s.replacement)
         if strategy == "standby" and s.replacement not in self.standby:
             strategy = "start-then-stop"  # nothing pre-started: make before break
+        if strategy == "stop-then-start" and self.replacement.strategy_for(s.component) == (
+            "standby"
+        ):
+            # The outgoing node stays, inactive, for the way back: it is never stopped, so
+            # its replacement starts inactive and takes over in the switch.
+            strategy = "start-then-stop"
         new = self.standby.get(s.replacement) if strategy == "standby" else None
         if new is None:
             new = self._spec(s, active=strategy == "stop-then-start")

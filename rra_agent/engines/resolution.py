@@ -64,6 +64,8 @@ NAME = "resolution"
 EMULATED_DELAY = float(os.environ.get("RRA_EMULATED_SWAP_DELAY", "0") or 0)
 #: The leader republishes its state at least this often (seconds).
 STATE_EVERY = 1.0
+#: After a host agent appears, how long to let the adaptation react before reconciling it.
+HOST_SETTLE = 0.5
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
@@ -105,6 +107,7 @@ class ResolutionEngine(EngineProcess):
         self.observed: dict[str, m.NodeState] = {}
         #: Hosts whose agent's liveliness token this replica sees (a partition hides it).
         self.present: set[str] = set()
+        self.rerun: dict[str, Any] = _rerun_config()
         self.unreachable: set[str] = set()
         #: Nodes whose live configuration is known to match: name -> pid.
         self.verified: dict[str, int] = {}
@@ -216,7 +219,12 @@ class ResolutionEngine(EngineProcess):
         def seen() -> None:
             (self.present.add if alive else self.present.discard)(host)
             self.unreachable = set(self.hosts) - self.present
-            self._reconcile_soon = True
+            if not alive:
+                return  # nothing can be done on it; what it misses is deferred
+            # Back (or new): reconcile once the context has had its say, so a selection
+            # that follows the host's return (its reachability measurement) is planned
+            # first, not undone by a reconcile towards the selection of the outage.
+            self._next_reconcile = min(self._next_reconcile, time.monotonic() + HOST_SETTLE)
 
         self.loop.post(seen)
 
@@ -685,6 +693,8 @@ class ResolutionEngine(EngineProcess):
             "standby": sorted(standby),
             "observed": {n: _observed(st) for n, st in self.observed.items()},
             "hosts": {h: h not in self.unreachable for h in self.hosts},
+            # How this run logs to Rerun: other hosts' agents give their nodes the same.
+            "rerun": self.rerun,
             "unreachable": sorted(self.unreachable),
             "applied": self.applied,
             "version": self.version if self.leading or self.mirror is None else self.mirror.version,
@@ -827,6 +837,16 @@ class ResolutionEngine(EngineProcess):
             self.sink.close()
         if self.viz:
             self.viz.close()
+
+
+def _rerun_config() -> dict[str, Any]:
+    """This run's Rerun configuration (``RRA_RERUN``, from ``rra up --rerun``)."""
+    from rra_agent.viz.rerun_log import RerunConfig
+
+    try:
+        return msgspec.to_builtins(RerunConfig.from_env())
+    except ValueError:
+        return {}
 
 
 def _observed(st: m.NodeState) -> dict[str, Any]:

@@ -7,6 +7,7 @@ An expectation is one line of text in a scenario's ``expect`` list, e.g.::
     measurement BattLev < 50 during [4, 10]
     cv MaxVel == 0.5 +- 0.001 from corridor + 1
     swap(radio_driver_b -> radio_driver_a) before low_battery + 2
+    node controller not restarted
     no node FATAL
 
 `parse` turns the text into an `Expectation` (keeping the offset of every name it refers
@@ -201,6 +202,13 @@ class StateExpectation(Expectation):
 
 
 @dataclass(frozen=True)
+class NotRestartedExpectation(Expectation):
+    """``node N not restarted``: one process (one pid) for the node throughout the window."""
+
+    node: str = ""
+
+
+@dataclass(frozen=True)
 class ValueExpectation(Expectation):
     quantity: Quantity = Quantity("name", "")
     op: str = "=="
@@ -371,6 +379,9 @@ class _Parser:
     def node(self, location: Location | None) -> Expectation:
         self.expect("node")
         name = self.name("a node name", "node")
+        if self.accept("not"):
+            self.expect("restarted")
+            return NotRestartedExpectation(self.text, location, self.window(), node=name)
         tok = self.peek()
         if tok.text not in STATES:
             raise self.error(f"expected a node state ({', '.join(STATES)})")
@@ -680,6 +691,9 @@ class Recording(msgspec.Struct, kw_only=True):
     injections: list[Applied] = []
     #: Processes of the run still alive once it was stopped (None: not checked).
     orphans: list[int] | None = None
+    #: Every node as its host agent listed it at the end of the run (``ListNodes``): what a
+    #: host did while it was cut off from the recorder shows here (a new pid).
+    nodes: list[m.NodeState] = []
 
 
 def save_recording(rec: Recording) -> bytes:
@@ -740,6 +754,10 @@ class Index:
         self.injections = {a.name: a for a in rec.injections}
         self.states: dict[str, Signal] = {}
         self.implementations: dict[str, Signal] = {}
+        #: Node -> its process ids (from every NodeState carrying one).
+        self.pids: dict[str, Signal] = {}
+        #: Node -> (host, pid) its host agent listed at the end of the run.
+        self.final_pids = {s.node: (s.host, s.pid) for s in rec.nodes if s.pid is not None}
         self.known_nodes: set[str] = set()
         self._index_events(t0)
         for (_, prev), (t, feats) in zip(self.features, self.features[1:], strict=False):
@@ -763,6 +781,9 @@ class Index:
                 sig = self.states.setdefault(ev.node, [(-math.inf, "STOPPED")])
                 if sig[-1][1] != ev.state:
                     sig.append((t, ev.state))
+                pids = self.pids.setdefault(ev.node, [])
+                if ev.pid is not None and (not pids or pids[-1][1] != ev.pid):
+                    pids.append((t, ev.pid))
                 if ev.state in ("STARTING", "RUNNING") and ev.implementation:
                     impl = self.implementations.setdefault(ev.node, [])
                     if not impl or impl[-1][1] != ev.implementation:
@@ -1053,6 +1074,8 @@ def evaluate(exp: Expectation, idx: Index) -> Outcome:
             t = first[1][0] if len(first) > 1 else None
             shown = f" ({first[1][1]} at {t:.2f} s)" if t is not None else ""
             return Outcome(False, f"node {n} was part of the run{shown}", t)
+        case NotRestartedExpectation(node=n):
+            return _check_not_restarted(idx, exp, n)
         case NoOrphanExpectation():
             if idx.rec.orphans is None:
                 return Outcome(False, "not checked (the run did not stop normally)")
@@ -1090,6 +1113,27 @@ def _check_event(idx: Index, exp: EventExpectation) -> Outcome:
 
 def _occ(o: Occurrence) -> str:
     return str(EventPattern(o.kind, o.args))
+
+
+def _check_not_restarted(idx: Index, exp: NotRestartedExpectation, node: str) -> Outcome:
+    """One pid in the window: the one in force at its start, every later one, and the one
+    the node's host agent listed at the end (when the window reaches it)."""
+    win = _window(idx, exp.when)
+    if isinstance(win, str):
+        return Outcome(False, win)
+    a, b, _ = win
+    pids = Index.pieces(idx.pids.get(node, []), a, b)
+    final = idx.final_pids.get(node)
+    if final is not None and b >= idx.end:
+        pids.append((idx.end, final[1]))
+    if not pids:
+        return Outcome(False, f"no process of node {node} recorded in [{a:.2f}, {b:.2f}] s")
+    first = pids[0][1]
+    for t, pid in pids:
+        if pid != first:
+            return Outcome(False, f"pid {first} -> {pid} at {t:.2f} s{_rel(t, exp.when, idx)}", t)
+    seen = f", listed by host {final[0]} at the end" if final is not None and b >= idx.end else ""
+    return Outcome(True, f"pid {first} throughout [{a:.2f}, {b:.2f}] s{seen}")
 
 
 def _check_no_state(idx: Index, exp: NoStateExpectation, state: str) -> Outcome:

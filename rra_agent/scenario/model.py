@@ -9,8 +9,13 @@ the scenario's settings and adds its own timeline steps and expectations.
 `load_scenario` reads a file with `rra_agent.models.yamlload` (every problem located as
 ``file:line:col``), loads the package, parses every expectation and checks every name it and
 the timeline refer to (features, nodes, ports, parameters, measurements, CV attributes,
-injections) against the package, so a typo fails at load (pytest: at collection), not after
-a run. The JSON Schema of `Scenario` is ``schemas/scenario.schema.json``.
+injections, links) against the package, so a typo fails at load (pytest: at collection), not
+after a run. The JSON Schema of `Scenario` is ``schemas/scenario.schema.json``.
+
+Several hosts: ``host`` is the first (``rra up --host``: the engines, its router the one the
+others join); every other host of the system model (or those ``hosts`` lists) gets an
+``rra agent`` joining it through a link the timeline can cut and restore (``cut_link``,
+``restore_link``: a partition on one machine, `rra_agent.scenario.link`).
 """
 
 from __future__ import annotations
@@ -41,7 +46,19 @@ Seconds = Annotated[float, msgspec.Meta(ge=0.0)]
 Duration = Annotated[float, msgspec.Meta(gt=0.0, le=600.0)]
 Period = Annotated[float, msgspec.Meta(gt=0.0)]
 ENGINES = ("monitor", "adaptation", "resolution")  # as rra_agent.cli.up.ENGINES
-ACTIONS = ("set_params", "publish", "malformed", "kill", "freeze", "resume", "inject")
+ACTIONS = (
+    "set_params",
+    "publish",
+    "malformed",
+    "kill",
+    "freeze",
+    "resume",
+    "inject",
+    "cut_link",
+    "restore_link",
+)
+#: Timeline actions naming a host (one of the case's agent hosts) rather than a node.
+LINK_ACTIONS = ("cut_link", "restore_link")
 
 
 # ---- timeline steps --------------------------------------------------------------------------
@@ -106,6 +123,11 @@ class Step(Model, frozen=True, kw_only=True):
     #: SIGCONT a frozen node's process.
     resume: str | None = None
     inject: InjectStep | None = None
+    #: Pull the cable of a host's link to the first host: nothing passes either way, neither
+    #: end is told (each finds out at its own lease); the host's agent runs on, cut off.
+    cut_link: str | None = None
+    #: Plug it back: the host's router reconnects, its agent is reachable again.
+    restore_link: str | None = None
 
     def __post_init__(self) -> None:
         given = [a for a in ACTIONS if getattr(self, a) is not None]
@@ -152,6 +174,12 @@ class Scenario(Model, frozen=True, kw_only=True):
     adaptation: bool = True
     #: Replaces the ``replacement`` section of the package's Run-time Resolution Model.
     replacement: Replacement | None = None
+    #: The first host: ``rra up --host`` runs the engines and the components placed on it (or
+    #: on no host), and is the router the other hosts join.
+    host: Name = "local"
+    #: The other hosts: one ``rra agent`` each, joining the first host's router through a link
+    #: the timeline may cut (``cut_link``). Default: every host of the system model but ``host``.
+    hosts: list[Name] | None = None
     #: Seconds the run lasts after deployment.
     duration: Duration
     #: Marked ``slow`` in pytest (deselect with ``-m "not slow"``).
@@ -211,6 +239,10 @@ class ScenarioCase:
     record_topics: frozenset[str] = frozenset()
     #: Further arguments for ``rra up`` (e.g. ``--rerun save PATH``).
     up_args: tuple[str, ...] = ()
+    #: The first host (``rra up --host``).
+    host: str = "local"
+    #: The other hosts, each an ``rra agent`` behind a cuttable link.
+    hosts: tuple[str, ...] = ()
 
     @property
     def id(self) -> str:
@@ -274,6 +306,7 @@ class _Loader:
         except RraError as e:
             raise self.doc.error(f"package {sc.package!r}: {e}", self.doc.loc("package")) from None
         self.pkg = pkg
+        self.hosts = self.agent_hosts()
         variants: list[tuple[Case | None, tuple[PathItem, ...]]] = (
             [(c, ("cases", i)) for i, c in enumerate(sc.cases)] if sc.cases else [(None, ())]
         )
@@ -332,7 +365,27 @@ class _Loader:
             sample_period=sc.sample_period,
             timeline=tuple(timeline),
             expectations=tuple(expectations),
+            host=sc.host,
+            hosts=self.hosts,
         )
+
+    def agent_hosts(self) -> tuple[str, ...]:
+        """The hosts that get an ``rra agent``: ``hosts``, checked against the system model,
+        or every host of the model but the first."""
+        sc, system = self.scenario, self.pkg.system
+        declared = [h.name for h in system.hosts]
+        placed = [c.host for c in system.components if c.host is not None]
+        known = list(dict.fromkeys(declared + placed))
+        if sc.hosts is None:
+            return tuple(h for h in known if h != sc.host)
+        for i, h in enumerate(sc.hosts):
+            if h == sc.host:
+                self.err(
+                    f"host {h!r} is the first host ('host'), not another", self.doc.loc("hosts", i)
+                )
+            elif h not in known:
+                self.err(unknown_name("host", h, known), self.doc.loc("hosts", i))
+        return tuple(h for h in dict.fromkeys(sc.hosts) if h in known and h != sc.host)
 
     # -- timeline
     def timeline(
@@ -383,6 +436,10 @@ class _Loader:
             node = getattr(step, action)
             if node is not None:
                 self.node(node, self.doc.loc(*where, action), engines=True)
+        for action in LINK_ACTIONS:
+            host = getattr(step, action)
+            if host is not None and host not in self.hosts:  # a link is named by its host
+                self.err(unknown_name("link", host, self.hosts), self.doc.loc(*where, action))
         if step.publish is not None:
             return self.topic(step.publish.port, self.doc.loc(*where, "publish", "port"))
         if step.malformed is not None:

@@ -1,13 +1,20 @@
 """Run a scenario case against a real system and judge it on what was recorded.
 
-`run_case` starts ``rra up`` as a subprocess (its own free loopback port, multicast off, its
-own run folder), connects to its bus, and records what the expectations need: every event
+`run_case` starts ``rra up --host <first host>`` as a subprocess (its own free loopback
+port, multicast off, its own run folder) and, for every other host of the case, an
+``rra agent`` (log folder ``hosts/<host>/`` of the run folder) whose router joins the first
+host's through a `Link` the runner owns: ``cut_link``/``restore_link`` steps pull and plug
+its cable, a network partition on one machine. The agents start first (their links hold
+them until ``rra up`` listens); the run starts once every agent's token is seen. The runner
+connects to the first host's bus and records what the expectations need: every event
 (``AdaptationEvent``, ``NodeState``), selection and conflict report, every context
-measurement, the data topics the expectations name, and the parameters of the nodes they
-name (sampled every ``sample_period``). Time 0 is the deployment: the Run-time Resolution
+measurement, the data topics the expectations name, the parameters of the nodes they name
+(sampled every ``sample_period``), and at the end every host agent's node list (the pids a
+cut-off host's events could not report). Time 0 is the deployment: the Run-time Resolution
 Engine's ``deploy`` event. The timeline is applied on schedule (each step at ``t0 + at``);
-after ``duration`` seconds the system is stopped (SIGINT, as Ctrl-C) and checked for
-processes that outlived it (every process of the run carries a marker in its environment).
+after ``duration`` seconds every process started is stopped (SIGINT, as Ctrl-C) and the run
+is checked for processes that outlived it (every process of the run carries a marker in its
+environment; each is started in a session of its own, with a parent-death signal).
 
 Evaluation is separate and pure: `evaluate_case` takes the case and the `Recording` and
 returns one `Row` per expectation (plus one per timeline step that could not be applied).
@@ -46,6 +53,7 @@ from rra_agent.errors import RraError
 from rra_agent.host.processes import die_with_parent
 from rra_agent.node import decode_data, encode_data
 from rra_agent.scenario import expectations as x
+from rra_agent.scenario.link import Link
 from rra_agent.scenario.model import ENGINES, ScenarioCase, TimedStep
 
 MARKER_ENV = "RRA_SCENARIO_RUN"
@@ -96,6 +104,7 @@ class CaseRun:
         """What to look at after a failure: the events log, recordings, the run's log."""
         out = [self.events_log, *sorted(self.run_dir.rglob("*.rrd"))]
         out += [self.run_dir / "recording.msgpack", self.run_dir / "up.log"]
+        out += sorted(self.run_dir.glob("hosts/*/agent.log"))
         return [p for p in out if p.exists()]
 
 
@@ -138,12 +147,28 @@ def prepare_package(case: ScenarioCase, run_dir: Path) -> Path:
 
 def up_command(case: ScenarioCase, package: Path, run_dir: Path, endpoint: str) -> list[str]:
     cmd = [sys.executable, "-m", "rra_agent", "up", str(package), "--run-dir", str(run_dir)]
-    cmd += ["--connect", endpoint, "--no-multicast", "--lease-ms", "500", "-q"]
+    cmd += ["--host", case.host, "--connect", endpoint, "--no-multicast", "--lease-ms", "500", "-q"]
     if case.select:
         cmd += ["--select", ",".join(case.select)]
     if not case.adaptation:
         cmd.append("--no-adaptation")
     return cmd + list(case.up_args)
+
+
+def agent_command(
+    case: ScenarioCase, host: str, package: Path, run_dir: Path, link: str
+) -> list[str]:
+    """``rra agent`` for ``host``: its router listens on a free loopback port and joins the
+    first host's router through ``link``."""
+    cmd = [sys.executable, "-m", "rra_agent", "agent", "--host", host, "--package", str(package)]
+    cmd += ["--system", case.system, "--log-dir", str(host_dir(run_dir, host) / "logs")]
+    cmd += ["--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", link]
+    return [*cmd, "--no-multicast", "--lease-ms", "500"]
+
+
+def host_dir(run_dir: Path, host: str) -> Path:
+    """Where the agent of another host keeps its log and its nodes' logs."""
+    return run_dir / "hosts" / host
 
 
 # ---- recording -------------------------------------------------------------------------------
@@ -160,6 +185,8 @@ class Recorder:
         self.deployed = threading.Event()
         self.deploy_event: m.AdaptationEvent | None = None
         self.hosts: dict[str, str] = {}
+        #: The host agents' node lists at the end of the run.
+        self.nodes: list[m.NodeState] = []
         self._merged_size = 0
 
     def on_event(self, sample: Any) -> None:
@@ -259,6 +286,15 @@ def _tail(path: Path, lines: int = 15) -> str:
     return "\n".join("    " + t for t in text)
 
 
+def _log_tails(run_dir: Path, hosts: tuple[str, ...]) -> str:
+    """The end of ``rra up``'s log and of every agent's, for a run that failed."""
+    logs = [("rra up", run_dir / "up.log")]
+    logs += [(f"rra agent {h}", host_dir(run_dir, h) / "agent.log") for h in hosts]
+    return "".join(
+        f"\n  {what} log ({path}):\n{tail}" for what, path in logs if (tail := _tail(path))
+    )
+
+
 # ---- the run ---------------------------------------------------------------------------------
 class _Run:
     def __init__(self, case: ScenarioCase, run_dir: Path, startup_timeout: float) -> None:
@@ -273,32 +309,61 @@ class _Run:
         self.t0: float | None = None
         self.end: float = 0.0
         self.orphans: list[int] | None = None
+        #: The other hosts' links to the first host, by host.
+        self.links: dict[str, Link] = {}
+        #: Every process started: ``rra up`` under the first host's name, the agents under theirs.
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
 
     def execute(self) -> None:
         case, run_dir = self.case, self.run_dir
         package = prepare_package(case, run_dir)
         port = free_port()
         endpoint = f"tcp/127.0.0.1:{port}"
+        try:
+            for host in case.hosts:  # first: each link holds its agent until rra up listens
+                link = self.links[host] = Link(("127.0.0.1", port))
+                link.start()
+                cmd = agent_command(case, host, package, run_dir, link.endpoint)
+                self.spawn(host, cmd, host_dir(run_dir, host) / "agent.log")
+            up = self.spawn(
+                case.host, up_command(case, package, run_dir, endpoint), run_dir / "up.log"
+            )
+            _wait_listening(port, up, self.startup_timeout)
+            self.record(endpoint)
+        finally:
+            self.stop()
+            for link in self.links.values():
+                link.close()
+
+    def spawn(self, host: str, cmd: list[str], log_path: Path) -> subprocess.Popen[bytes]:
+        """Start one process of the run: marked, in a session of its own (a Ctrl-C of the
+        test runner reaches the runner, not it), killed if the runner dies."""
         env = {**os.environ, MARKER_ENV: self.marker, "RERUN_ANALYTICS": "0"}
-        with (run_dir / "up.log").open("wb") as log:
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        with log_path.open("wb") as log:
             proc = subprocess.Popen(
-                up_command(case, package, run_dir, endpoint),
+                cmd,
                 env=env,
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
-                start_new_session=True,  # a Ctrl-C of the test runner reaches us, not it
+                start_new_session=True,
                 preexec_fn=die_with_parent if sys.platform == "linux" else None,
             )
-        try:
-            _wait_listening(port, proc, self.startup_timeout)
-            self.record(endpoint, proc)
-        finally:
-            self.stop(proc)
+        self.procs[host] = proc
+        return proc
 
-    def record(self, endpoint: str, proc: subprocess.Popen[bytes]) -> None:
+    def check_alive(self, what: str) -> None:
+        """RunError if a process of the run exited (``what``: what it had not done yet)."""
+        for host, proc in self.procs.items():
+            if proc.poll() is not None:
+                name = "rra up" if host == self.case.host else f"the agent of host {host}"
+                raise RunError(f"{name} exited with status {proc.returncode} before {what}")
+
+    def record(self, endpoint: str) -> None:
         bus = BusConfig(connect=[endpoint], multicast=False, lease_ms=500)
         with BusClient(bus, self.case.system) as client:
+            self.wait_hosts(client)
             keys, s, rec = client.keys, client.session, self.rec
             subs = [
                 s.declare_subscriber(keys.events, rec.on_event),
@@ -314,7 +379,8 @@ class _Run:
                 | {f"inject/{t.step.inject.kind}" for t in self.case.timeline if t.step.inject}
             }
             try:
-                self.t0 = self.wait_deployed(proc)
+                self.t0 = self.wait_deployed()
+                self.latest_measurements(client)
                 sampler = _Sampler(client, rec, self.case, self.t0)
                 sampler.start()
                 try:
@@ -322,21 +388,68 @@ class _Run:
                 finally:
                     sampler.stop()
                 self.end = time.time() - self.t0
+                nodes = self.list_nodes(client)
+                with rec.lock:
+                    rec.nodes = nodes
             finally:
                 for sub in subs:
                     sub.undeclare()
                 for pub in publishers.values():
                     pub.undeclare()
 
-    def wait_deployed(self, proc: subprocess.Popen[bytes]) -> float:
+    def wait_hosts(self, client: BusClient) -> None:
+        """Until the first host's router sees every other host's agent (RunError if not)."""
+        want = set(self.case.hosts)
+
+        def joined() -> bool:
+            self.check_alive("every host joined")
+            replies = client.session.liveliness().get(client.keys.host_alive_all, timeout=0.5)
+            seen = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
+            return want <= seen
+
+        if not want:
+            return
+        try:
+            wait_until(joined, self.startup_timeout, f"the agents of {sorted(want)} to join")
+        except TimeoutError as e:
+            raise RunError(str(e)) from None
+
+    def latest_measurements(self, client: BusClient) -> None:
+        """Add the Context Monitor's newest value of each measurement not recorded yet: one
+        published before the runner listened and not since (a host's reachability is
+        published on change only)."""
+        latest: dict[str, m.Measurement] = {}
+        for reply in client.session.get(client.keys.ctx_all, timeout=1.0):
+            if reply.ok is None:
+                continue
+            with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+                msg = _CTX.decode(reply.ok.payload.to_bytes())
+                latest.setdefault(msg.name, msg)
+        with self.rec.lock:
+            seen = {ms.name for ms in self.rec.measurements}
+            self.rec.measurements += [ms for n, ms in latest.items() if n not in seen]
+
+    def list_nodes(self, client: BusClient) -> list[m.NodeState]:
+        """Every host agent's nodes as it lists them now (a host that does not answer: none)."""
+        out: list[m.NodeState] = []
+        for host in (self.case.host, *self.case.hosts):
+            try:
+                reply = client.host(host, m.ListNodes(), 2.0)
+            except NoReply:
+                continue
+            if isinstance(reply, m.Ok) and isinstance(reply.result, list):
+                with contextlib.suppress(msgspec.ValidationError):
+                    out += msgspec.convert(reply.result, list[m.NodeState])
+        return out
+
+    def wait_deployed(self) -> float:
         deadline = time.monotonic() + self.startup_timeout
         log = self.run_dir / "events.jsonl"
         while not self.rec.deployed.wait(0.1):
             self.rec.merge_log(log)  # in case the deploy event came before we listened
             if self.rec.deployed.is_set():
                 break
-            if proc.poll() is not None:
-                raise RunError(f"rra up exited with status {proc.returncode} before deploying")
+            self.check_alive("deploying")
             if time.monotonic() >= deadline:
                 raise RunError(f"no deployment within {self.startup_timeout:g} s")
         ev = self.rec.deploy_event
@@ -400,9 +513,15 @@ class _Run:
                 msg = m.Inject(kind=inj.kind, target=inj.target, args=dict(inj.args), stamp=stamp)
                 publishers[f"inject/{inj.kind}"].put(_INJ.encode(msg))
                 return True, ""
+            if step.cut_link is not None:
+                self.links[step.cut_link].cut()
+                return True, ""
+            if step.restore_link is not None:
+                self.links[step.restore_link].restore()
+                return True, ""
             action = step.action
             node = self.process_of(client, getattr(step, action), action)
-            host = self.rec.hosts.get(node, "local")
+            host = self.rec.hosts.get(node, self.case.host)
             return _reply(client.host(host, m.SignalNode(node=node, signal=int(_SIGNALS[action]))))
         except NoReply as e:
             return False, str(e)
@@ -423,11 +542,16 @@ class _Run:
         return replica
 
     # -- the end
-    def stop(self, proc: subprocess.Popen[bytes]) -> None:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+    def stop(self) -> None:
+        """SIGINT to every process started, all at once (each stops its own nodes); SIGKILL
+        of the process group of any still running after 30 s."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 30.0
+        for proc in self.procs.values():
             try:
-                proc.wait(30)
+                proc.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(proc.pid, signal.SIGKILL)
@@ -459,6 +583,7 @@ class _Run:
                 params=list(rec.params),
                 injections=list(self.applied.values()),
                 orphans=self.orphans,
+                nodes=list(rec.nodes),
             )
 
 
@@ -525,8 +650,7 @@ def run_case(case: ScenarioCase, run_dir: Path, *, startup_timeout: float = 60.0
     try:
         run.execute()
     except RunError as e:
-        tail = _tail(run_dir / "up.log")
-        error = f"{e}" + (f"\n  rra up log ({run_dir / 'up.log'}):\n{tail}" if tail else "")
+        error = f"{e}" + _log_tails(run_dir, case.hosts)
     except NoPeer as e:
         error = f"cannot connect to the system: {e}"
     rec = run.recording()

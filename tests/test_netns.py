@@ -189,7 +189,7 @@ def placed(tmp_path: Path, hosts: dict[str, str]) -> Path:
     return pkg
 
 
-def start_system(net: Network, pkg: Path, tmp_path: Path, others: list[str]):
+def start_system(net: Network, pkg: Path, tmp_path: Path, others: list[str], *up_args: str):
     """``rra up`` in A, ``rra agent`` in every other host; (up, {host: agent})."""
     a = net.addr("A")
     agents = {
@@ -201,7 +201,7 @@ def start_system(net: Network, pkg: Path, tmp_path: Path, others: list[str]):
     }  # fmt: skip
     up = net.python("A", "-m", "rra_agent", "up", str(pkg), "--host", "A", "-q",
                     "--run-dir", str(tmp_path / "run"), "--connect", HUB,
-                    "--listen", f"tcp/{a}:{PORT}", "--insecure", name="up")  # fmt: skip
+                    "--listen", f"tcp/{a}:{PORT}", "--insecure", *up_args, name="up")  # fmt: skip
     net.wait_listening("A", PORT, a, proc=up)
     for h, proc in agents.items():
         net.wait_listening(h, PORT, "127.0.0.1", proc=proc)
@@ -349,9 +349,14 @@ def test_teardown_kills_and_reports_what_outlives_its_stop(tmp_path):
 def test_two_hosts_each_runs_its_nodes_and_a_swap_happens_on_b(network, tmp_path):
     net = network("A", "B")
     pkg = placed(tmp_path, {"direct": "B", "filtered": "B", "sink": "B"})
-    up, agents = start_system(net, pkg, tmp_path, ["B"])
+    up, agents = start_system(net, pkg, tmp_path, ["B"], "--rerun", "save")
     rra = Rra(net, "A")
     st = rra.wait(deployed, "the deployment")
+    # One Rerun recording for all hosts: B's agent took the run's configuration from the
+    # engine, its nodes write under B's log folder.
+    recording = st["engine"]["rerun"]["recording_id"]
+    rerun_dir = tmp_path / "B-logs" / "rerun" / recording
+    assert rerun_dir.is_dir() and f"Rerun files of this host in {rerun_dir}" in net.log("agent-B")
     hosts = {n["node"]: n["host"] for n in st["nodes"]}
     assert hosts["source"] == "A" and hosts["resolution-a"] == "A"
     assert hosts["direct"] == "B" and hosts["sink"] == "B"

@@ -113,6 +113,9 @@ class HostAgent:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._interrupts = 0
+        #: A host other than the first learns the run's Rerun configuration from the engine.
+        self._rerun_known = hub
+        self.log_dir = Path(log_dir)
 
     def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
         """A child's bus identity: the engine or node certificate of this host, and for a
@@ -306,7 +309,36 @@ class HostAgent:
             spec, fence=m.Fence(epoch=self.fence[0], leader=self.fence[1])
         )
 
+    def _learn_rerun(self) -> None:
+        """Log to the run's one Rerun recording, as the first host's nodes do: the engine's
+        configuration; in ``save`` mode each node writes its file under this host's
+        ``<log-dir>/rerun/<recording-id>/`` (merge with ``rerun rrd merge``)."""
+        if self._rerun_known or self.session is None:
+            return
+        self._rerun_known = True  # one try: a start never waits on this twice
+        from rra_agent.viz.rerun_log import ENV_VAR, RerunConfig
+
+        for reply in self.session.get(
+            self.keys.engine_ctl("resolution"), payload=_ANY.encode(m.Status()), timeout=1.0
+        ):
+            answer = _REPLY.decode(reply.ok.payload.to_bytes()) if reply.ok else None
+            if not isinstance(answer, m.Ok) or not isinstance(answer.result, dict):
+                continue
+            try:
+                cfg = msgspec.convert(answer.result.get("rerun") or {}, RerunConfig)
+            except msgspec.ValidationError:
+                return
+            if cfg.mode == "save":
+                folder = (self.log_dir / "rerun" / cfg.recording_id).resolve()
+                folder.mkdir(parents=True, exist_ok=True)
+                cfg = msgspec.structs.replace(cfg, dir=str(folder))
+                print(f"rra agent {self.host}: Rerun files of this host in {folder}", flush=True)
+            if cfg.mode != "off":
+                self.local.extra_env[ENV_VAR] = cfg.to_env()
+            return
+
     def _start(self, spec: m.NodeSpec) -> m.Reply:
+        self._learn_rerun()
         sup, now = self.supervisor, self.clock()
         spec = self._fenced(spec)
         p = sup.procs.get(spec.name)

@@ -79,6 +79,8 @@ class LocalHost:
     ) -> None:
         self.name = name
         self.bus = bus
+        #: Variables every child gets on top of its own (e.g. the run's Rerun configuration).
+        self.extra_env: dict[str, str] = {}
         #: The bus configuration of each child (its identity: engine or node, its Zenoh id).
         self.bus_for: Callable[[NodeSpec], BusConfig] = lambda spec: self.bus
         self.log_dir = Path(log_dir)
@@ -204,6 +206,7 @@ class LocalHost:
             BUS_ENV: self.bus_for(spec).to_env(),
             hb.ENV: self.heartbeats.allocate(spec.name),
             "PYTHONUNBUFFERED": "1",
+            **self.extra_env,
         }
         if not isinstance(spec.implementation, str):
             env.update(spec.implementation.env)

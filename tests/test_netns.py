@@ -48,6 +48,7 @@ network = netns.network  # the fixture: network("A", "B", ...) -> Network
 SYSTEM = "relay_system"
 PORT = 7447  # every host's router, on its own loopback (and A's also on its address)
 HUB = f"tcp/127.0.0.1:{PORT}"
+TLS_HUB = f"tls/127.0.0.1:{PORT}"
 LOCAL_ROUTER = ("127.0.0.1", PORT)
 DELAY_MS = 20.0
 
@@ -82,14 +83,23 @@ class Rra:
     script, one client session for all its requests: no process start per poll), both
     clients of the host's own router."""
 
-    def __init__(self, net: Network, host: str = "A") -> None:
+    def __init__(self, net: Network, host: str = "A", certs: Path | None = None) -> None:
         self.net, self.host = net, host
+        #: With certificates: the operator's identity, TLS to the host's router (the `rra`
+        #: commands and the probe read it from RRA_BUS_CONFIG).
+        self.hub = TLS_HUB if certs else HUB
+        self.env: dict[str, str] = {}
+        if certs is not None:
+            from rra_agent.bus.config import ENV_VAR, BusConfig
+
+            bus = BusConfig(connect=[TLS_HUB]).with_identity(certs / "operator", "operator")
+            self.env[ENV_VAR] = bus.to_env()
         self._probe: subprocess.Popen | None = None
         self._lines: Lines | None = None
 
     def cli(self, *args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
         """``python ARGS`` in the host's namespace, to completion."""
-        proc = self.net.python(self.host, *args, stdout=subprocess.PIPE,
+        proc = self.net.python(self.host, *args, stdout=subprocess.PIPE, env=self.env,
                                stderr=subprocess.PIPE, text=True)  # fmt: skip
         try:
             out, err = proc.communicate(timeout=timeout)
@@ -100,13 +110,14 @@ class Rra:
 
     def status_cli(self) -> dict:
         """``rra status --json``."""
-        done = self.cli("-m", "rra_agent", "status", "--system", SYSTEM, "--connect", HUB, "--json")
+        done = self.cli("-m", "rra_agent", "status", "--system", SYSTEM, "--connect", self.hub,
+                        "--json")  # fmt: skip
         assert done.returncode == 0, done.stderr
         return json.loads(done.stdout)
 
     def param(self, node: str, *assignments: str) -> str:
         """``rra param NODE NAME=VALUE...``."""
-        done = self.cli("-m", "rra_agent", "param", "--system", SYSTEM, "--connect", HUB, node,
+        done = self.cli("-m", "rra_agent", "param", "--system", SYSTEM, "--connect", self.hub, node,
                         *assignments)  # fmt: skip
         assert done.returncode == 0, done.stderr
         return done.stdout
@@ -117,7 +128,8 @@ class Rra:
             with (self.net.log_dir / f"probe-{self.host}.log").open("ab") as err:
                 self._probe = self.net.python(
                     self.host, str(Path(__file__)), "serve", name=f"probe-{self.host}",
-                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, bufsize=0,
+                    env=self.env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
+                    bufsize=0,
                 )  # fmt: skip
             self._lines = Lines(self._probe)
             ready = self._lines.read(30)
@@ -189,19 +201,40 @@ def placed(tmp_path: Path, hosts: dict[str, str]) -> Path:
     return pkg
 
 
-def start_system(net: Network, pkg: Path, tmp_path: Path, others: list[str], *up_args: str):
-    """``rra up`` in A, ``rra agent`` in every other host; (up, {host: agent})."""
+def certificates(net: Network, pkg: Path, tmp_path: Path) -> Path:
+    """``rra certs``: the system CA, each host's certificates (A's also for its address, which
+    the other hosts dial) and the operator's."""
+    out = tmp_path / "certs"
+    done = subprocess.run([sys.executable, "-m", "rra_agent", "certs", str(pkg), "--out",
+                           str(out), "--san", f"A={net.addr('A')}"], capture_output=True,
+                          text=True, check=False)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+def start_system(
+    net: Network, pkg: Path, tmp_path: Path, others: list[str], *up_args: str,
+    certs: Path | None = None,
+):  # fmt: skip
+    """``rra up`` in A, ``rra agent`` in every other host; (up, {host: agent}). With
+    ``certs``: mutual TLS on every link and the model's access control on every router."""
     a = net.addr("A")
+    proto = "tls" if certs else "tcp"
+
+    def secure(host: str) -> list[str]:
+        return ["--certs", str(certs / host)] if certs else ["--insecure"]
+
     agents = {
         h: net.python(h, "-m", "rra_agent", "agent", "--system", SYSTEM, "--host", h,
-                      "--package", str(pkg), "--connect", f"tcp/{a}:{PORT}",
-                      "--listen", f"tcp/127.0.0.1:{PORT}", "--insecure",
+                      "--package", str(pkg), "--connect", f"{proto}/{a}:{PORT}",
+                      "--listen", f"{proto}/127.0.0.1:{PORT}", *secure(h),
                       "--log-dir", str(tmp_path / f"{h}-logs"), name=f"agent-{h}")
         for h in others
     }  # fmt: skip
     up = net.python("A", "-m", "rra_agent", "up", str(pkg), "--host", "A", "-q",
-                    "--run-dir", str(tmp_path / "run"), "--connect", HUB,
-                    "--listen", f"tcp/{a}:{PORT}", "--insecure", *up_args, name="up")  # fmt: skip
+                    "--run-dir", str(tmp_path / "run"), "--connect", f"{proto}/127.0.0.1:{PORT}",
+                    "--listen", f"{proto}/{a}:{PORT}", *secure("A"), *up_args,
+                    name="up")  # fmt: skip
     net.wait_listening("A", PORT, a, proc=up)
     for h, proc in agents.items():
         net.wait_listening(h, PORT, "127.0.0.1", proc=proc)
@@ -457,8 +490,9 @@ def test_a_cut_link_is_context_not_a_crash(network, tmp_path, outage):
     rule switches back and the reconcile loop converges without restarting anything."""
     net = network("A", "B")
     pkg = partition_package(tmp_path)
-    up, agents = start_system(net, pkg, tmp_path, ["B"])
-    rra = Rra(net, "A")
+    certs = certificates(net, pkg, tmp_path)
+    up, agents = start_system(net, pkg, tmp_path, ["B"], certs=certs)
+    rra = Rra(net, "A", certs)
     st = rra.wait(lambda s: deployed(s) and "Direct" in s["engine"]["selection"]
                   and node(s, "sink")["state"] == "RUNNING", "deployment, B up")  # fmt: skip
     sink = node(st, "sink")
@@ -587,9 +621,10 @@ def probe(argv: list[str]) -> int:
     if cmd != "serve":
         raise SystemExit(f"unknown probe command {cmd!r}")
     from rra_agent.bus.client import BusClient
-    from rra_agent.bus.config import BusConfig
+    from rra_agent.bus.config import ENV_VAR, BusConfig
 
-    client = BusClient(BusConfig(connect=[HUB]), SYSTEM)
+    bus = BusConfig.from_env() if os.environ.get(ENV_VAR) else BusConfig(connect=[HUB])
+    client = BusClient(bus, SYSTEM)
     try:
         print("ready", flush=True)
         for line in sys.stdin:  # until EOF (or SIGINT at teardown)

@@ -12,8 +12,15 @@ import subprocess
 import sys
 
 
-def spin() -> None:
-    os.nice(0)
+def spin(parent: int) -> None:
+    """Spin until killed; die with the parent (even a SIGKILLed one: no orphaned hog)."""
+    if sys.platform == "linux":
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the parent died before the death signal was set
+            return
     while True:
         pass
 
@@ -24,7 +31,7 @@ def main(argv: list[str]) -> int:
         n, argv = int(argv[0]), argv[1:]
     if argv and argv[0] == "--":
         argv = argv[1:]
-    hogs = [mp.Process(target=spin, daemon=True) for _ in range(n)]
+    hogs = [mp.Process(target=spin, args=(os.getpid(),), daemon=True) for _ in range(n)]
     for h in hogs:
         h.start()
     try:

@@ -41,13 +41,14 @@ import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
+
+from rra_agent.bus.client import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = str(ROOT / ".venv" / "bin" / "python") if (ROOT / ".venv").exists() else sys.executable
 _counter = itertools.count(1)
 _NAME = re.compile(r"^rra(\d+)n\d+")
-T = TypeVar("T")
 
 
 class NetnsUnavailable(RuntimeError):
@@ -59,18 +60,6 @@ def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     if check and proc.returncode != 0:
         raise RuntimeError(f"ip {' '.join(args)}: {proc.stderr.strip() or proc.returncode}")
     return proc
-
-
-def wait_for(pred: Callable[[], T], timeout: float, what: str, interval: float = 0.02) -> T:
-    """``pred()`` once it is truthy; TimeoutError naming ``what`` after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            raise TimeoutError(f"{what}: not within {timeout:g} s")
-        time.sleep(interval)
 
 
 def pid_alive(pid: int) -> bool:

@@ -51,6 +51,8 @@ DEFAULT_HUB = "tcp/127.0.0.1:7447"
 #: The default hub once the process has certificates (``--certs``).
 TLS_HUB = "tls/127.0.0.1:7447"
 ENV_VAR = "RRA_BUS_CONFIG"
+#: Zenoh's connect retry: first after 250 ms, doubling to at most 1 s.
+RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 #: Link protocols that authenticate and encrypt.
 SECURE_PROTOCOLS = ("tls/", "quic/")
 
@@ -220,6 +222,9 @@ class BusConfig(Model, frozen=True):
         c.insert_json5("connect/endpoints", json.dumps(self.connect))
         c.insert_json5("connect/timeout_ms", json.dumps(self.connect_timeout_ms))
         c.insert_json5("connect/exit_on_failure", "false")
+        # Retry a lost endpoint (another host's router after a partition) at least every
+        # second, not every 4 s (Zenoh's default maximum): a host is back within ~1 s.
+        c.insert_json5("connect/retry", json.dumps(RETRY))
         c.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast))
         c.insert_json5("scouting/delay", "0")
         c.insert_json5("transport/link/tx/lease", json.dumps(self.lease_ms))

@@ -605,4 +605,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run the imported module's main, not this ``__main__`` copy's: implementations subclass
+    # ``rra_agent.node.Node``, which is not this copy's ``Node`` class.
+    from rra_agent.node import main as _main
+
+    sys.exit(_main())

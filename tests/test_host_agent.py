@@ -73,13 +73,16 @@ def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
     )
 
 
-@pytest.fixture
-def agent(procs, bus, tmp_path):
+@pytest.fixture(params=["fork-server"])
+def agent(procs, bus, tmp_path, request):
+    """A host agent of host h1; ``exec`` (indirect parametrisation): without the fork server,
+    each node its own ``python -m rra_agent.node``."""
+    env = {"RRA_FORK_SERVER": "0"} if request.param == "exec" else None
     proc = procs.python(
         "rra_agent.host.agent",
         "--package", str(PACKAGE), "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
-        name="agent",
+        name="agent", env=env,
     )  # fmt: skip
     client = BusClient(bus, SYSTEM)
     watch = Watch(client.session)
@@ -107,6 +110,7 @@ def ok(reply: m.Reply) -> object:
     return reply.result
 
 
+@pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)
 def test_start_run_data_and_stop(agent, procs):
     _proc, client, watch = agent
     start(client, watch, procs)

@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import threading
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import msgspec
@@ -280,8 +281,8 @@ def set_params(
     client: BusClient,
     node: str,
     values: dict[str, Any],
-    reset: list[str] = (),
-    timeout: float = 5.0,  # type: ignore[assignment]
+    reset: Sequence[str] = (),
+    timeout: float = 5.0,
 ) -> dict[str, Any]:
     """Set a node's parameters as an operator: through the Run-time Resolution Engine, so
     they are checked, become part of the Run-time Configured System Model and survive

@@ -154,7 +154,11 @@ def _read_key(path: Path) -> ec.EllipticCurvePrivateKey:
 
 
 def _same_key(cert: x509.Certificate, key: ec.EllipticCurvePrivateKey) -> bool:
-    return cert.public_key().public_numbers() == key.public_key().public_numbers()
+    pub = cert.public_key()
+    return (
+        isinstance(pub, ec.EllipticCurvePublicKey)
+        and pub.public_numbers() == key.public_key().public_numbers()
+    )
 
 
 def _name(cn: str) -> x509.Name:

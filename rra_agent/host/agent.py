@@ -492,6 +492,14 @@ def configure(parser) -> None:  # argparse.ArgumentParser
         required=True,
         help="the system package: this host runs only the components it places here",
     )
+    parser.add_argument(
+        "--select",
+        "-s",
+        action="append",
+        default=[],
+        help="deployment-time features, comma separated, as given to `rra up` (default: the "
+        "manifest's): the model this host runs components of",
+    )
     parser.add_argument("--log-dir", default="rra-logs", help="node logs go here")
     parser.add_argument(
         "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
@@ -504,7 +512,7 @@ def run(args) -> int:  # argparse.Namespace
     from rra_agent.bus.config import bus_from_args
     from rra_agent.deployment import deploy
 
-    dep = deploy(args.package)
+    dep = deploy(args.package, [n.strip() for v in args.select for n in v.split(",") if n.strip()])
     if args.system and args.system != dep.system:
         raise RraError(f"--system {args.system}: the package's system is {dep.system}")
     catalog = Catalog(

@@ -163,6 +163,8 @@ def agent_command(
     cmd = [sys.executable, "-m", "rra_agent", "agent", "--host", host, "--package", str(package)]
     cmd += ["--system", case.system, "--log-dir", str(host_dir(run_dir, host) / "logs")]
     cmd += ["--listen", f"tcp/127.0.0.1:{free_port()}", "--connect", link]
+    if case.select:  # the same deployment-time selection as `rra up`: the same model
+        cmd += ["--select", ",".join(case.select)]
     return [*cmd, "--no-multicast", "--lease-ms", "500"]
 
 

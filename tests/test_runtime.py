@@ -274,3 +274,24 @@ def test_a_host_router_refuses_plain_text_beyond_loopback_unless_insecure():
     assert cfg.local_client().connect == ["tcp/127.0.0.1:7447"]
     ok = BusConfig(listen=["tls/0.0.0.0:7448"]).host_router(hub=False)
     assert ok.local_client().connect == ["tls/127.0.0.1:7448"]
+
+
+def test_rra_up_beyond_loopback_needs_tls_or_an_explicit_insecure(procs, tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import listening
+
+    port = free_port()
+    run_dir = tmp_path / "run"
+    args = [sys.executable, "-m", "rra_agent", "up", str(DATA), "--run-dir", str(run_dir)]
+    args += ["--connect", f"tcp/127.0.0.1:{free_port()}", "--listen", f"tcp/0.0.0.0:{port}"]
+    refused = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 1 and refused.stdout == ""
+    assert refused.stderr.count("\n") == 1 and "--insecure" in refused.stderr
+    assert "Traceback" not in refused.stderr and not run_dir.exists()
+    proc = procs.spawn([*args, "--insecure", "-q"], name="insecure")
+    wait_until(lambda: listening(port), 60, "rra up --insecure listening")
+    assert "WARNING: --insecure" in procs.log("insecure")
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(30) == 0

@@ -125,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
     names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
     dep = deploy(args.package, names)
     bus: BusConfig = bus_from_args(args, role="agent")
+    bus.host_router(hub=True)  # a refused endpoint fails here, before the run folder exists
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
     run_dir.mkdir(parents=True, exist_ok=True)

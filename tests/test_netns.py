@@ -503,7 +503,7 @@ def test_a_cut_link_is_context_not_a_crash(network, tmp_path, outage):
     st = rra.wait(lambda s: "Filtered" in s["engine"]["selection"]
                   and "filtered" in running(s), "the rule acting on B's absence", 15)  # fmt: skip
     acted = time.monotonic() - t_cut
-    assert st["engine"]["unreachable"] == ["B"]
+    assert "B" in st["engine"]["unreachable"], st["engine"]["unreachable"]
     assert acted < 5.0, f"acted {acted:.1f} s after the cut"  # lease 500 ms + a plan
     wait_for(lambda: time.monotonic() - t_cut >= outage, outage + 1, "the outage", 0.5)
     assert netns.pid_alive(sink["pid"]), "B's node died during the outage"

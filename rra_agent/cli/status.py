@@ -51,45 +51,57 @@ def wait_for_leader(client: BusClient, timeout: float) -> None:
 
 
 def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
-    """The engine's status, every host agent's node list and every process's counters."""
-    out: dict[str, Any] = {"engine": None, "nodes": [], "stats": {}}
+    """The engine's status, every host's nodes and every process's counters. An operator
+    with a certificate (``client.restricted``) may not call host or node control: its view
+    is the engine's (what the host agents last reported to it) and the engines' counters."""
+    engine = _engine_status(client, timeout)
+    eng = engine or {}
+    present = {
+        str(r.ok.key_expr).rsplit("/", 1)[-1]
+        for r in client.session.liveliness().get(client.keys.host_alive_all, timeout=1)
+        if r.ok is not None
+    }
+    nodes = [] if client.restricted else _listed_nodes(client, sorted(present), timeout)
+    listed = {n["node"] for n in nodes}
+    unreachable = set(eng.get("unreachable", []))
+    for name, st in (eng.get("observed") or {}).items():
+        if name in listed:
+            continue
+        # On a host the engine cannot reach now: as it last heard of it.
+        state = f"{st['state']}?" if st.get("host") in unreachable else st["state"]
+        nodes.append({"node": name, **st, "state": state})
+    families = ("engine",) if client.restricted else ("node", "host")
+    return {
+        "engine": engine,
+        "nodes": nodes,
+        # The model's hosts as the engine sees them (an unreachable one too), and any other.
+        "hosts": sorted({*eng.get("hosts", {}), *present}),
+        "stats": process_stats(client, timeout, families=families),
+    }
+
+
+def _engine_status(client: BusClient, timeout: float) -> dict[str, Any] | None:
     # A client just connected has not been told about the engine yet: query it once the
     # leader's token has reached this session (its queryable was declared before it).
     with contextlib.suppress(TimeoutError):
         wait_for_leader(client, timeout)
     try:
         reply = client.request(client.keys.engine_ctl("resolution"), m.Status(), timeout)
-        if isinstance(reply, m.Ok):
-            out["engine"] = reply.result
     except NoReply:
-        pass
-    present = {
-        str(r.ok.key_expr).rsplit("/", 1)[-1]
-        for r in client.session.liveliness().get(client.keys.host_alive_all, timeout=1)
-        if r.ok is not None
-    }
-    if client.restricted:  # an operator: what the engine observes, its counters
-        out["hosts"] = sorted({*(out["engine"] or {}).get("hosts", {}), *present})
-        for name, st in ((out["engine"] or {}).get("observed") or {}).items():
-            out["nodes"].append({"node": name, **st})
-        out["stats"] = process_stats(client, timeout, families=("engine",))
-        return out
-    # The model's hosts as the engine sees them (an unreachable one too), and any other agent.
-    hosts = sorted({*(out["engine"] or {}).get("hosts", {}), *present})
-    for host in sorted(present):
+        return None
+    return reply.result if isinstance(reply, m.Ok) else None
+
+
+def _listed_nodes(client: BusClient, hosts: list[str], timeout: float) -> list[dict[str, Any]]:
+    """Every node the host agents of ``hosts`` supervise (``ListNodes``)."""
+    out: list[dict[str, Any]] = []
+    for host in hosts:
         try:
             reply = client.host(host, m.ListNodes(), timeout)
         except NoReply:
             continue
         if isinstance(reply, m.Ok):
-            out["nodes"].extend(reply.result)
-    listed = {n["node"] for n in out["nodes"]}
-    for name, st in ((out["engine"] or {}).get("observed") or {}).items():
-        if name not in listed and st.get("host") not in present:
-            # On a host this client cannot reach: as the engine last heard of it.
-            out["nodes"].append({"node": name, **st, "state": f"{st['state']}?"})
-    out["hosts"] = hosts
-    out["stats"] = process_stats(client, timeout)
+            out.extend(reply.result)
     return out
 
 

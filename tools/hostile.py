@@ -6,7 +6,10 @@ At ``--rate`` messages per second (until Ctrl-C, or for ``--seconds``) it cycles
 junk bytes and payloads over the size limit on every data, ctx, selection, events and
 inject key it has seen; selections forged with a fence no live leader holds, naming unknown
 features and CV values of 1e6; node requests with parameters out of their bounds, of the
-wrong type or unknown; malformed queries to every node, host and engine control endpoint.
+wrong type or unknown; malformed queries to every node, host and engine control endpoint;
+host requests the model does not allow (an undeclared command, a declared-looking one with
+injected ``PYTHONWARNINGS``/``BROWSER`` variables, a node name escaping the log folder, a
+spec update smuggling a command in).
 It never sends a valid unauthenticated command (that is access control's business): a
 runtime that is disturbed by it (a restart, a FATAL node, a value out of bounds, a lost
 adaptation) has a bug. Used by the tests with ``pytest --hostile`` and by hand.
@@ -23,6 +26,7 @@ import threading
 import time
 from typing import Any
 
+import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
@@ -30,6 +34,7 @@ from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import MAX_PAYLOAD
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.runtime import open_session
+from rra_agent.models.system import Command
 
 JUNK = [b"", b"\x00", b"\xc1\xff", b"\x81\xa1t\xa3zzz", bytes(range(256)), b"\x92\xa3sel\xc0"]
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
@@ -59,7 +64,7 @@ class Hostile:
                 parsed = self.keys.parse_alive(str(reply.ok.key_expr))
                 if parsed:
                     self.nodes.add(parsed[1])
-        for reply in self.session.liveliness().get(f"{self.keys.prefix}/hostagent/*", timeout=0.5):
+        for reply in self.session.liveliness().get(self.keys.host_alive_all, timeout=0.5):
             if reply.ok is not None:
                 self.hosts.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
 
@@ -92,6 +97,24 @@ class Hostile:
         )
         self.query(self.keys.node_ctl(node), _ANY.encode(m.SetParams(params=params)))
 
+    def bad_host_requests(self) -> None:
+        if not self.hosts:
+            return
+        host = self.rng.choice(sorted(self.hosts))
+        node = self.rng.choice(sorted(self.nodes) or ["sink"])
+        cmd = Command(
+            command=[sys.executable, "-m", "rra_agent.engines.resolution"],
+            env={"PYTHONWARNINGS": "ignore::0:os.system('id'):0", "BROWSER": "sh -c id"},
+        )
+        spec = m.NodeSpec(system=self.keys.system, name=node, host=host, implementation=cmd)
+        request = self.rng.choice([
+            m.StartNode(spec=spec),
+            m.StartNode(spec=msgspec.structs.replace(spec, name="../../../../tmp/mallory")),
+            m.StartNode(spec=msgspec.structs.replace(spec, name="mallory")),
+            m.UpdateSpec(specs=[spec]),
+        ])  # fmt: skip
+        self.query(self.keys.host_ctl(host), _ANY.encode(request))
+
     def bad_queries(self) -> None:
         targets = [self.keys.node_ctl(n) for n in self.nodes]
         targets += [self.keys.host_ctl(h) for h in self.hosts]
@@ -105,7 +128,14 @@ class Hostile:
 
     def run(self, rate: float, seconds: float | None, stop: threading.Event) -> None:
         actions = itertools.cycle(
-            [self.junk, self.forged_selection, self.junk, self.bad_params, self.bad_queries]
+            [
+                self.junk,
+                self.forged_selection,
+                self.junk,
+                self.bad_params,
+                self.bad_queries,
+                self.bad_host_requests,
+            ]
         )
         t0 = time.monotonic()
         next_discovery = t0

@@ -190,6 +190,15 @@ class MonitorProcess(EngineProcess):
         if not first or not alive:
             self._host_event(host, alive)
 
+    def on_leadership(self, leading: bool) -> None:
+        """A new leader publishes the hosts' reachability it knows: a value its predecessor
+        published may predate what this replica has seen since."""
+        if not leading:
+            return
+        for host, alive in self.reachable.items():
+            for name in self.reachability[host]:
+                self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))
+
     def _host_event(self, host: str, alive: bool) -> None:
         if not self.leading or self._events is None:
             return
@@ -236,8 +245,12 @@ class MonitorProcess(EngineProcess):
             self._events = session.declare_publisher(
                 self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
             )
+            # With history: a token that exists already is delivered too (the seed's query
+            # may run before this session has heard of it, and would call it unreachable).
             entities.append(
-                session.liveliness().declare_subscriber(self.keys.host_alive_all, self._on_host)
+                session.liveliness().declare_subscriber(
+                    self.keys.host_alive_all, self._on_host, history=True
+                )
             )
             self._seed_hosts(session)
         return entities

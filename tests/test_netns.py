@@ -497,12 +497,14 @@ def test_a_cut_link_is_context_not_a_crash(network, tmp_path, outage):
                   and node(s, "sink")["state"] == "RUNNING", "deployment, B up")  # fmt: skip
     sink = node(st, "sink")
     assert sink["host"] == "B"
+    wait_for(lambda: rra.call("measurements").get("BUp") is True, 10, "BUp true", 0.2)
 
     net.cut("B")
     t_cut = time.monotonic()
     st = rra.wait(lambda s: "Filtered" in s["engine"]["selection"]
                   and "filtered" in running(s), "the rule acting on B's absence", 15)  # fmt: skip
     acted = time.monotonic() - t_cut
+    wait_for(lambda: rra.call("measurements").get("BUp") is False, 5, "BUp false", 0.1)
     assert "B" in st["engine"]["unreachable"], st["engine"]["unreachable"]
     assert acted < 5.0, f"acted {acted:.1f} s after the cut"  # lease 500 ms + a plan
     wait_for(lambda: time.monotonic() - t_cut >= outage, outage + 1, "the outage", 0.5)
@@ -511,6 +513,7 @@ def test_a_cut_link_is_context_not_a_crash(network, tmp_path, outage):
     st = rra.wait(lambda s: "Direct" in s["engine"]["selection"] and "direct" in running(s)
                   and not s["engine"]["unreachable"]
                   and node(s, "sink")["state"] == "RUNNING", "B back, Direct", 60)  # fmt: skip
+    wait_for(lambda: rra.call("measurements").get("BUp") is True, 10, "BUp true again", 0.2)
     after = node(st, "sink")
     assert after["pid"] == sink["pid"] and after.get("restarts", 0) == 0, after
     assert not any(n["state"] == "FATAL" for n in st["nodes"]), st["nodes"]
@@ -567,6 +570,9 @@ def serve(client, request: list[str]):
     match request:
         case ["status"]:
             return msgspec.to_builtins(gather(client, timeout=1.0))
+        case ["measurements"]:  # the Context Monitor leader's newest values
+            reply = client.request(client.keys.engine_ctl("monitor"), m.Status(), 2.0)
+            return reply.result.get("measurements", {}) if isinstance(reply, m.Ok) else {}
         case ["describe", name]:
             wait_until(lambda: name in {n for _, n in client.alive()}, 10, f"{name}'s token")
             reply = client.node(name, m.Describe())

@@ -187,18 +187,21 @@ class EngineProcess:
 
     # ---- leadership --------------------------------------------------------------------
     def _leadership_changed(self) -> None:
+        """Take over (or step down), then answer for the role: the role's endpoint appears
+        only once the snapshot it answers from is the new leader's (a client asking during
+        a takeover waits for it rather than reading a standby's half state)."""
         leading = self.leading
         session = self.session
-        if leading and self._role_ctl is None and session is not None:
-            self._role_ctl = session.declare_queryable(
-                self.keys.engine_ctl(self.role), self._on_engine_query
-            )
-        elif not leading and self._role_ctl is not None:
+        if not leading and self._role_ctl is not None:
             with contextlib.suppress(Exception):
                 self._role_ctl.undeclare()
             self._role_ctl = None
         self.on_leadership(leading)
         self.publish_status()
+        if self.leading and self._role_ctl is None and session is not None:
+            self._role_ctl = session.declare_queryable(
+                self.keys.engine_ctl(self.role), self._on_engine_query
+            )
 
     # ---- the process -------------------------------------------------------------------
     def run(self, *, install_signals: bool = True) -> int:

@@ -32,7 +32,7 @@ from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.config import free_port
 from rra_agent.cli.status import set_params
 from rra_agent.errors import RraError
-from rra_agent.node import encode_data
+from rra_agent.node import decode_data, encode_data
 
 ROOT = Path(__file__).resolve().parents[1]
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
@@ -324,9 +324,19 @@ def test_forged_and_invalid_selections_are_refused_and_bounded(system):
     assert adaptation["leader"][0] == real.epoch
     # A forged CV value under the real leader's own fence: clamped to the attribute's
     # bounds [0, 10] at the engine, so 1e6 never reaches the node.
-    put(["Direct", "Path", "Tuning"], {"Gain": 1e6}, real)
-    st = sys_.wait(lambda s: s["engine"]["cv"]["Gain"] == 10.0, "the clamped CV applied")
-    assert sys_.ctl("sink", m.Describe()).result["params"]["offset"] == 10.0
+    # The Adaptation Engine's next selection sets it back, so watch what the sink does with
+    # it (source value 1.0 + offset) instead of sampling the engine's state in between.
+    outputs: list[float] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: outputs.append(decode_data(s.payload.to_bytes())["value"])
+    )
+    try:
+        wait_until(lambda: outputs, 10, "the sink's output")
+        put(["Direct", "Path", "Tuning"], {"Gain": 1e6}, real)
+        wait_until(lambda: 11.0 in outputs, 10, "the clamped CV (offset 10) at the sink")
+    finally:
+        sub.undeclare()
+    assert max(outputs) <= 11.0  # 1e6 never reached the node
 
 
 ROLES = {"node", "host", "monitor", "adaptation", "resolution"}

@@ -107,7 +107,10 @@ def test_a_stalled_hub_restarts_nothing_and_loses_no_state(system, hog):
     assert not [n for n in st["nodes"] if n["state"] == "FATAL"]
     crash = events.states("sink", "BACKOFF", after=killed_at or 0)
     assert crash and "status -9" in crash[0].reason
-    assert crash[0].stamp - killed_at < 0.020, f"detected after {crash[0].stamp - killed_at:.3f} s"
+    # From the OS (SIGCHLD), not from a lease (500 ms): well under it even with both cores
+    # busy (the speed itself is tools/bench_faults.py's figure, 1.7 ms median).
+    detected = crash[0].stamp - killed_at
+    assert detected < 0.25, f"detected after {detected:.3f} s"
     # The operator's value is still in force, in the model and in the node.
     assert st["engine"]["overrides"] == {"source": {"value": 3.0}}
     assert sys_.ctl("source", m.Describe()).result["params"]["value"] == 3.0

@@ -187,6 +187,19 @@ def listening(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def run_rra(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """``python -m rra_agent ARGS`` of this checkout, to completion (60 s at most)."""
+    return subprocess.run(
+        [sys.executable, "-m", "rra_agent", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        cwd=cwd,
+        check=False,
+    )
+
+
 def tcp_peers(pid: int, netns: str | None = None) -> set[int]:
     """Remote TCP ports of the established connections of process ``pid`` (from ``ss``)."""
     cmd = ["ss", "-Htnp", "state", "established"]

@@ -9,14 +9,11 @@ is computed from the corrupted text.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
-from conftest import copy_mini, plant, position
+from conftest import copy_mini, plant, position, run_rra
 
 from rra_agent.cli import commands as cli
 from rra_agent.cli import main
@@ -35,17 +32,7 @@ def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, 
     return rc, out, err
 
 
-def run_subprocess(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run(
-        [sys.executable, "-m", "rra_agent", *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=env,
-        cwd=cwd,
-        check=False,
-    )
+run_subprocess = run_rra
 
 
 # ---- the corruption matrix ---------------------------------------------------------------

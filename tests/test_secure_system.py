@@ -6,14 +6,13 @@ of it has any effect on the running system."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import zenoh
 from conftest import RELAY, listening
+from conftest import run_rra as rra
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
@@ -46,11 +45,6 @@ def secure(procs, tmp_path):
 def operator(endpoint: str, certs: Path) -> BusClient:
     bus = BusConfig(connect=[endpoint]).with_identity(certs / "operator", "operator")
     return BusClient(bus, "relay_system")
-
-
-def rra(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rra_agent", *args], capture_output=True,
-                          text=True, timeout=60)  # fmt: skip
 
 
 def running(client: BusClient, *names: str) -> dict:

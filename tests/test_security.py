@@ -24,7 +24,7 @@ from pathlib import Path
 import msgspec
 import pytest
 import zenoh
-from conftest import stop_process
+from conftest import run_rra, stop_process
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
@@ -82,13 +82,7 @@ finally:
 
 # ---- certificates ---------------------------------------------------------------------------
 def _rra(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "rra_agent", *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=ROOT,
-    )
+    return run_rra(*args, cwd=ROOT)
 
 
 def _cn(cert: x509.Certificate) -> str:

@@ -29,6 +29,7 @@ from typing import Any, ClassVar, Protocol
 
 import msgspec
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD, Counters, RateLimitedLog
 from rra_agent.bus.messages import NodeSpec
@@ -140,6 +141,14 @@ class Node:
 
     def __init__(self, ctx: NodeContext) -> None:
         self.ctx = ctx
+
+    @classmethod
+    def warm_up(cls) -> None:
+        """Expensive set-up that does not depend on the node's spec (tables, gains, models),
+        done once per host: the host agent's fork server calls it after importing the class,
+        and every node forked from it inherits what it cached at module or class level. A
+        cold start (stop-then-start) then costs a fork, not a computation. Must not open
+        files, threads or sessions (they would be shared by every forked node)."""
 
     def on_start(self) -> None:
         """Called once, after ports and parameters are set up and before the node is ready."""
@@ -581,8 +590,10 @@ def run_node(spec: NodeSpec) -> int:
         for folder in reversed(spec.path):  # the package's own modules come first
             if folder not in sys.path:
                 sys.path.insert(0, folder)
+        trace.mark("node:import", spec.name)
         node_cls = load_node_class(spec.implementation)
         bus = BusConfig.from_env()
+        trace.mark("node:imported", spec.name)
     except (ValueError, RraError) as e:
         print(f"rra node {spec.name}: {e}", file=sys.stderr)
         return EXIT_CONFIG

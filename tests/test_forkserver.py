@@ -112,3 +112,50 @@ def test_external_command_is_execed_with_its_env_and_stops_on_sigint(host: Local
 def test_node_names_cannot_leave_the_log_folder(host: LocalHost):
     with pytest.raises(ValueError):
         host.spawn(spec("../../tmp/x"))
+
+
+WARM_MODULE = """
+import os, sys
+from rra_agent.node import Node
+
+WARMED_IN = None
+
+
+class Warm(Node):
+    @classmethod
+    def warm_up(cls):
+        global WARMED_IN
+        WARMED_IN = os.getpid()
+
+    def on_start(self):
+        print(f"warmed in {WARMED_IN}, running in {os.getpid()}", file=sys.stderr, flush=True)
+
+
+class Broken(Node):
+    @classmethod
+    def warm_up(cls):
+        raise RuntimeError("warm-up failed")
+"""
+
+
+def test_warm_up_runs_once_in_the_fork_server_and_nodes_inherit_it(tmp_path, monkeypatch):
+    """`Node.warm_up` of every preloaded implementation runs in the zygote; a forked node
+    finds its result without computing it (a cold start pays a fork, not the set-up). A
+    warm-up that raises costs nothing but its own cache."""
+    (tmp_path / "warmmod.py").write_text(WARM_MODULE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.host_router(hub=True))
+    logs = tmp_path / "logs"
+    h = LocalHost("h", bus, logs, preload=["warmmod.Broken", "warmmod.Warm"])
+    try:
+        pids = [h.spawn(spec(f"w{i}", "warmmod.Warm")) for i in range(2)]
+        assert h.zygote is not None
+        zygote = h.zygote.pid
+        for i, pid in enumerate(pids):
+            log = logs / f"w{i}.log"
+            wait_until(lambda log=log: "warmed in" in log.read_text(), 10, f"w{i} on_start")
+            assert f"warmed in {zygote}, running in {pid}" in log.read_text()
+    finally:
+        h.kill_all()
+        hub.close()

@@ -28,6 +28,7 @@ from typing import Any
 
 import zenoh
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
@@ -152,6 +153,7 @@ class NodeRuntime:
         signal.signal(signal.SIGINT, self._on_signal)
         signal.signal(signal.SIGTERM, self._on_signal)
         session = open_session(self.bus)
+        trace.mark("node:session", self.spec.name)
         token = None
         core: NodeCore | None = None
         try:
@@ -168,7 +170,9 @@ class NodeRuntime:
             queryable = session.declare_queryable(
                 self.keys.node_ctl(self.spec.name), self._on_query(core)
             )
+            trace.mark("node:declared", self.spec.name)
             core.start()
+            trace.mark("node:on_start", self.spec.name)
             # Only now: a sample delivered before on_start would meet a half-set-up node
             # (samples arriving earlier are dropped, as if they had come before the ports).
             transport.core = core
@@ -176,6 +180,7 @@ class NodeRuntime:
                 self.keys.alive(self.spec.host, self.spec.name)
             )
             self.heartbeat.beat(ready=True)
+            trace.mark("node:token", self.spec.name)
             self._loop(core)
             queryable.undeclare()
             return 0

@@ -34,6 +34,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.bus.keys import Keys
@@ -182,6 +183,7 @@ class ZenohActuator:
 
     def start(self, specs: list[m.NodeSpec]) -> None:
         specs = self._reachable(specs, "start")
+        trace.mark("engine:start", ",".join(s.name for s in specs))
         mark = self._mark()
         sent: list[m.NodeSpec] = []
         waiting: list[m.NodeSpec] = []
@@ -209,6 +211,7 @@ class ZenohActuator:
                 timeout=self.start_timeout,
                 what="start",
             )
+            trace.mark("engine:started", ",".join(s.name for s in specs))
         except (StepFailed, NoReply) as e:
             self._abandon(sent)
             raise StepFailed(str(e)) from None
@@ -221,6 +224,7 @@ class ZenohActuator:
 
     def stop(self, specs: list[m.NodeSpec]) -> None:
         specs = self._reachable(specs, "stop")
+        trace.mark("engine:stop", ",".join(s.name for s in specs))
         mark = self._mark()
         waiting: list[m.NodeSpec] = []
         try:
@@ -238,12 +242,15 @@ class ZenohActuator:
             timeout=self.stop_timeout,
             what="stop",
         )
+        trace.mark("engine:stopped", ",".join(s.name for s in specs))
 
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         """All requests in flight at once (each get returns at once; then drain the replies),
         so a batch costs about one round trip. Successful spec changes are forwarded to the
         host agents without waiting. A request to a node of an unreachable host is deferred
         (answered ``Ok`` with no result here)."""
+        if trace.enabled():
+            trace.mark("engine:control", ",".join(c.label for c in batch))
         handlers = [
             self.session.get(
                 self.keys.node_ctl(c.spec.name),
@@ -258,6 +265,8 @@ class ZenohActuator:
             self._first_reply(h, c) if h is not None else self._defer(c)
             for h, c in zip(handlers, batch, strict=True)
         ]
+        if trace.enabled():
+            trace.mark("engine:replied", ",".join(c.label for c in batch))
         latest: dict[str, m.NodeSpec] = {}
         for c, rep in zip(batch, replies, strict=True):
             if isinstance(rep, m.Ok) and c.after is not None:

@@ -40,6 +40,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, node_zid
 from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
@@ -90,7 +91,8 @@ class HostAgent:
         self.certs = certs
         #: What this host may run (from its own copy of the system model).
         self.catalog = catalog
-        preload = {i.rpartition(".")[0] for i in catalog.implementations if "." in i}
+        # The fork server imports every implementation and warms it up (`Node.warm_up`).
+        preload = {i for i in catalog.implementations if "." in i}
         self.local = LocalHost(
             host, self.bus, log_dir, preload=sorted(preload), prober=self._probe_later
         )
@@ -133,6 +135,7 @@ class HostAgent:
     # ---- what this agent tells the world -----------------------------------------------
     def _on_transition(self, t: Transition) -> None:
         p = self.supervisor.procs.get(t.node)
+        trace.mark(f"agent:{t.state.value}", t.node)
         msg = m.NodeState(
             stamp=time.time(),
             node=t.node,
@@ -199,6 +202,7 @@ class HostAgent:
         parsed = self.keys.parse_alive(str(sample.key_expr))
         if parsed is None or parsed[0] != self.host or sample.kind != zenoh.SampleKind.PUT:
             return  # a token's disappearance is not evidence about the process
+        trace.mark("agent:alive", parsed[1])
         self.loop.post(lambda: self.supervisor.on_ready(parsed[1], self.clock()))
 
     # ---- probes ----------------------------------------------------------------------
@@ -338,6 +342,7 @@ class HostAgent:
             return
 
     def _start(self, spec: m.NodeSpec) -> m.Reply:
+        trace.mark("agent:start", spec.name)
         self._learn_rerun()
         sup, now = self.supervisor, self.clock()
         spec = self._fenced(spec)
@@ -356,6 +361,7 @@ class HostAgent:
             sup.add(spec, self.local)
         sup.start(spec.name, now)
         p = sup.procs[spec.name]
+        trace.mark("agent:spawned", spec.name)
         return m.Ok(result={"pid": p.pid, "state": p.state.value})
 
     def _stop(self, name: str) -> m.Reply:

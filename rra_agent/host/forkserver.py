@@ -45,6 +45,7 @@ from typing import Any
 
 import msgspec
 
+from rra_agent import trace
 from rra_agent.bus.messages import NodeSpec
 
 #: What every Python node needs: imported once, in the zygote.
@@ -80,10 +81,17 @@ class ForkServerError(OSError):
 
 
 # ---- the zygote side ------------------------------------------------------------------------
-def _preload(modules: Iterable[str]) -> None:
-    for name in modules:
+def _preload(names: Iterable[str]) -> None:
+    """Import modules; for an implementation (``pkg.module.Class``), import it and call its
+    `Node.warm_up`."""
+    from rra_agent.node import load_node_class
+
+    for name in names:
         with contextlib.suppress(Exception):  # the node's own start reports real problems
-            importlib.import_module(name)
+            try:
+                importlib.import_module(name)
+            except ImportError:
+                load_node_class(name).warm_up()
 
 
 def serve(host_pid: int, preload: Iterable[str] = ()) -> int:
@@ -127,6 +135,7 @@ def _node(request: dict[str, Any], fds: list[int], host_pid: int) -> None:
     """In the node process: wait for the adoption, then become the node. Never returns."""
     code = EXIT_SETUP
     try:
+        trace.mark("node:forked", request["spec"]["name"])
         deadline = time.monotonic() + _ADOPTION_TIMEOUT
         while os.getppid() != host_pid:  # the intermediate exits: we move to the host agent
             if time.monotonic() > deadline:
@@ -135,6 +144,7 @@ def _node(request: dict[str, Any], fds: list[int], host_pid: int) -> None:
         die_with_parent()
         if os.getppid() != host_pid:  # the host agent died in between
             os._exit(EXIT_SETUP)
+        trace.mark("node:adopted", request["spec"]["name"])
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         _redirect(request["log"], fds)
         env = request.get("env", {})

@@ -496,6 +496,11 @@ class ProplossGains:
     schedule_points: int = 33
 
 
+#: Gain schedules by (params, gains, dt): they depend on nothing else, so one computation
+#: serves every controller of a process, and every node forked from a warmed-up fork server.
+_SCHEDULES: dict[tuple[QuadParams, ProplossGains, float], dict[int, Any]] = {}
+
+
 class ProplossController:
     """Flies on the two opposing propellers left once motor ``k`` failed (Mueller & D'Andrea).
 
@@ -532,7 +537,10 @@ class ProplossController:
         self._measured_time: float | None = None
         self._du_model = 0.0  # the pair's thrust difference, from our own commands
         self._last_cmd: np.ndarray | None = None
-        self.schedules = {k: self._schedule(k) for k in range(N_MOTORS)}
+        key = (self.p, self.g, dt)
+        if key not in _SCHEDULES:  # ~100 ms of LQR solves: once per process (see warm_up)
+            _SCHEDULES[key] = {k: self._schedule(k) for k in range(N_MOTORS)}
+        self.schedules = _SCHEDULES[key]
         self._recovery_cos = math.cos(self.g.recovery_angle)
         self._kp, self._kd = np.array(self.g.kp), np.array(self.g.kd)
         if failed is not None:

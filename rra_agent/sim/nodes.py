@@ -386,6 +386,10 @@ class ProplossController(_ControllerNode):
     Imports the standard controller's state (position integrators, failed motor).
     """
 
+    @classmethod
+    def warm_up(cls) -> None:
+        control.ProplossController()  # computes and caches the gain schedules
+
     def setup(self) -> None:
         self.ctl = control.ProplossController()
         self._apply_failed_param()

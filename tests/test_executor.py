@@ -138,8 +138,9 @@ def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
     assert act.calls == [
         ("export", "controller"),
         ("stop", "controller"),
-        ("start", "proploss_controller", True, {"integral": 1.5}),
+        # the simulator listens to the new controller before it starts: no command is lost
         ("rewire", "vehicle_simulator", "motor_cmd", (K.data("proploss_controller/motor_cmd"),)),
+        ("start", "proploss_controller", True, {"integral": 1.5}),
     ]
     assert "controller" not in ex.running and "proploss_controller" in ex.running
 
@@ -152,11 +153,13 @@ def test_start_then_stop_makes_before_break(quad):
     ops = [c[:2] for c in act.calls]
     assert ops == [
         ("start", "proploss_controller"),
+        # connect: the simulator listens to the new node before it is activated (its first
+        # command is published on activation); no deactivation of controller: it publishes
+        # elsewhere and the rewire cuts it off
+        ("rewire", "vehicle_simulator"),
         ("export", "controller"),
         ("import", "proploss_controller"),
         ("active", "proploss_controller"),
-        # no deactivation of controller: it publishes elsewhere and the rewire cuts it off
-        ("rewire", "vehicle_simulator"),
         ("stop", "controller"),  # last: after the simulator listens to the new node
     ]
     assert act.calls[0][2] is False  # started inactive
@@ -174,8 +177,8 @@ def test_standby_switch_is_activate_rewire_and_no_start(quad):
     act.calls.clear()
     out = ex.execute(plan)
     assert out.ok and out.first_switch is not None
-    assert [c[0] for c in act.calls] == ["export", "import", "active", "rewire", "stop"]
-    assert act.calls[2] == ("active", "proploss_controller", True)
+    assert [c[0] for c in act.calls] == ["rewire", "export", "import", "active", "stop"]
+    assert act.calls[3] == ("active", "proploss_controller", True)
     assert not ex.standby and ex.running["proploss_controller"].active
 
 
@@ -206,7 +209,7 @@ def test_failed_rewire_undoes_the_swap_in_reverse_order(quad):
         (K.data("proploss_controller/motor_cmd"),),
     )
     undo = act.calls[act.calls.index(failed) + 1 :]
-    assert undo == [("active", "proploss_controller", False), ("stop", "proploss_controller")]
+    assert undo == [("stop", "proploss_controller")]  # it was never activated
     assert set(ex.running) >= {"controller"} and "proploss_controller" not in ex.running
 
 
@@ -242,7 +245,7 @@ def test_parameters_and_their_rollback():
     assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 5}
 
 
-def test_standby_switch_is_one_concurrent_batch_and_the_host_learns_new_specs(quad):
+def test_standby_switch_is_connect_then_activate_and_the_host_learns_new_specs(quad):
     _, target = quad
     ex, act = make("standby", transfer=False)
     deploy(ex, act, target("Standard"))
@@ -252,8 +255,10 @@ def test_standby_switch_is_one_concurrent_batch_and_the_host_learns_new_specs(qu
     act.calls.clear()
     act.batches.clear()
     assert ex.execute(swap_plan(target)).ok
-    # activate proploss + rewire the simulator: one round trip
-    assert act.batches == [2]
+    # rewire the simulator, then activate proploss: its first command (published on
+    # activation) finds the simulator listening
+    assert act.batches == [1, 1]
+    assert [c[0] for c in act.calls] == ["rewire", "active", "stop"]
     sim = ex.running["vehicle_simulator"]
     assert sim.ports["motor_cmd"].keys == [K.data("proploss_controller/motor_cmd")]
 

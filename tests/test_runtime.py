@@ -113,6 +113,38 @@ def test_standby_replacement_is_prestarted_and_switched_by_activation(system, tm
     assert not any(p.startswith("start ") for p in swap.plan)
 
 
+def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(system, tmp_path):
+    """The sink is rewired before the standby is activated: the sample ``filtered``
+    publishes the moment it is activated (its latest, as a standby controller publishes its
+    latest command) reaches the sink. Rewired in the same batch as the activation, the sink
+    was not yet subscribed and lost it: its first sample through ``filtered`` came with the
+    next tick. A tick every 5 s makes the two cases unmistakable (the tick that carries
+    Level 7 also triggers the switch)."""
+    from rra_agent.node import decode_data
+
+    pkg = package_copy(tmp_path)
+    edit_yaml(pkg / "runtime.yaml",
+              lambda d: d["replacement"].update(components={"filtered": "standby"}))  # fmt: skip
+    edit_yaml(pkg / "system.yaml", lambda d: d["components"][0]["parameters"]["rate_hz"]
+              .update(value=0.2))  # fmt: skip
+    edit_yaml(pkg / "measurements.yaml",
+              lambda d: d["measurements"][0].update(max_age_ms=60000))  # fmt: skip
+    sys_ = system(pkg)
+    out: list[dict] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
+    )
+    try:
+        sys_.set_level(7.0)
+        wait_until(lambda: any(o["value"] >= 100 for o in out), 30, "a sample through filtered")
+        first = next(o for o in out if o["value"] >= 100)
+        trigger = [o for o in out if 7 <= o["value"] < 100]
+        assert trigger, out
+        assert first["seq"] == trigger[-1]["seq"], out  # republished, not the next tick
+    finally:
+        sub.undeclare()
+
+
 def test_random_bytes_on_every_key_crash_nothing(system):
     sys_ = system()
     session = sys_.client.session

@@ -26,6 +26,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
@@ -189,6 +190,8 @@ class AdaptationProcess(EngineProcess):
         now = time.time()
         result = self.engine.tick(now, values, changed=changed)
         if self.leading and (force or result.changed or now - self.last_sent >= self.heartbeat):
+            if result.changed:
+                trace.mark("adaptation:selection", ",".join(sorted(result.selection)))
             self.publish(result, values, now)
             for c in result.conflicts:
                 self._send(

@@ -32,6 +32,7 @@ from typing import Any
 
 import zenoh
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
@@ -168,6 +169,7 @@ class MonitorProcess(EngineProcess):
             self.latest[msg.name] = msg
         if not self.leading:
             return  # a hot standby computes everything, publishes nothing
+        trace.mark("monitor:measurement", msg.name)
         self.publishers[msg.name].put(_CTX.encode(msg))
         self.published += 1
         if self.viz:

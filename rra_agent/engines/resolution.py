@@ -41,6 +41,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
@@ -177,6 +178,8 @@ class ResolutionEngine(EngineProcess):
             return
         self.counters.received += 1
         if isinstance(msg, m.Selection):
+            if msg.changed:
+                trace.mark("resolution:selection", ",".join(msg.features))
             with self.lock:
                 if self.latest is not None and self.latest is not self._taken and self.leading:
                     self.counters.bump("coalesced")  # a newer one came first: it wins
@@ -430,6 +433,7 @@ class ResolutionEngine(EngineProcess):
             )
             return None
         t_plan = time.perf_counter()
+        trace.mark("resolution:planned", f"{len(plan.steps)} steps")
         if EMULATED_DELAY > 0 and plan.steps:
             time.sleep(EMULATED_DELAY)  # benchmarks only: a slower pipeline, like the paper's
         outcome = self.executor.execute(plan)

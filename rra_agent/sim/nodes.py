@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.node import Node, NodeContext
@@ -128,6 +129,7 @@ class VehicleSimulator(Node):
             return
         sender = str(data.get("controller", ""))
         if sender != self._controller:
+            trace.mark("sim:command_from", sender)
             self._controller = sender
             self._announce = sender
 
@@ -173,6 +175,7 @@ class VehicleSimulator(Node):
         for _ in range(n):
             q.step()
             if self._announce is not None:
+                trace.mark("sim:commanded_by", self._announce)
                 self._event("controller", self._announce)
                 self._announce = None
         if q.crashed and not self._crash_reported:
@@ -221,6 +224,7 @@ class VehicleSimulator(Node):
             self.ctx.log(f"refused injection {inj.kind} {args}: {e}")
             return
         detail = f"{inj.kind} " + " ".join(f"{k}={v}" for k, v in sorted(args.items()))
+        trace.mark("sim:fault", self.ctx.name)
         self._event("fault", detail.strip())
 
     # ---- injection subscription ------------------------------------------------------------
@@ -419,6 +423,7 @@ class ProplossController(_ControllerNode):
             cmd = self.ctl.update(self.estimate, self.setpoint)
             self.last_command = None if cmd is None else [float(w) for w in cmd]
         if self.last_command is not None:
+            trace.mark("node:activated_publish", self.ctx.name)
             self.ctx.publish("motor_cmd", self._message(self.last_command))
         else:
             self.ctx.log("activated without a known failed motor: no command yet")

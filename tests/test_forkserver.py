@@ -159,3 +159,38 @@ def test_warm_up_runs_once_in_the_fork_server_and_nodes_inherit_it(tmp_path, mon
     finally:
         h.kill_all()
         hub.close()
+
+
+def _our_children() -> set[int]:
+    """Live (not zombie) children of this process forked from a fork server."""
+    from rra_agent.host.processes import process_state
+
+    me = os.getpid()
+    out = set()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                pid = int(entry)
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    forked = b"forkserver" in f.read()
+                if forked and parent_of(pid) == me and process_state(pid) not in ("Z", ""):
+                    out.add(pid)
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+def test_a_start_takes_the_waiting_spare_and_a_new_spare_is_forked(host: LocalHost):
+    """The fork server keeps a spare node process forked, adopted and waiting: a start hands
+    it the request (no fork, no adoption wait on the start's path) and forks the next."""
+    before = _our_children()  # what earlier tests' processes may still be
+    first = host.spawn(spec("s1"))
+    assert host.zygote is not None
+    known = {first, host.zygote.pid, *before}
+    spare = wait_until(lambda: next(iter(_our_children() - known), None), 10, "a spare")
+    second = host.spawn(spec("s2"))
+    assert second == spare
+    known.add(second)
+    wait_until(lambda: _our_children() - known, 10, "the next spare")
+    # a spare is not a node: the host reaps nothing for it and knows only its nodes
+    assert set(host.running()) == {first, second}

@@ -16,7 +16,7 @@ from conftest import pid_alive
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.keys import Keys
-from rra_agent.models.system import Command, Supervision
+from rra_agent.models.system import Command, Scheduling, Supervision
 from rra_agent.node import decode_data, encode_data
 
 SYSTEM = "hosttest"
@@ -220,15 +220,21 @@ def test_killed_host_agent_takes_its_nodes_along(agent, procs):
 def test_fork_server_death_is_reported_nodes_survive_and_ctrl_c_works(agent, procs):
     proc, client, watch = agent
     running = start(client, watch, procs)
-    # The nodes are forked from it too (same command line): the one that is not a node.
-    zygotes = [p for p in children(proc.pid) if "forkserver" in cmdline(p) and p != running.pid]
-    assert len(zygotes) == 1
+    # The nodes (and the spare node process waiting for a request) are forked from it too
+    # (same command line): the one whose stdin is still the host agent's pipe.
+    zygotes = [p for p in children(proc.pid) if "forkserver" in cmdline(p)
+               and os.readlink(f"/proc/{p}/fd/0").startswith("pipe:")]  # fmt: skip
+    assert len(zygotes) == 1 and running.pid not in zygotes
+    spares = [p for p in children(proc.pid) if "forkserver" in cmdline(p)
+              and p not in zygotes and p != running.pid]  # fmt: skip
     os.kill(zygotes[0], signal.SIGKILL)
     ev = wait_until(
         lambda: next((e for e in watch.events if e.kind == "fork_server"), None), 10, "the report"
     )
     assert "exited" in ev.message and ev.level == "warning"
     assert pid_alive(running.pid)
+    for spare in spares:  # without its zygote, a spare has nothing to wait for
+        wait_until(lambda spare=spare: not pid_alive(spare), 10, "the spare's exit")
     second = start(client, watch, procs, relay_spec("relay2"))  # through a new fork server
     assert ok(client.host("h1", m.Stats()))["counters"]["fork_server_restarts"] == 1  # type: ignore[index]
     proc.send_signal(signal.SIGINT)
@@ -357,3 +363,37 @@ def test_a_declared_command_runs_as_declared_and_is_not_disclosed(agent, procs):
     text = msgspec.json.encode(listed).decode()
     assert "sleep" not in text and "TOOL_MODE" not in text
     assert listed[0]["implementation"].startswith("command:")  # type: ignore[index]
+
+
+def _realtime_allowed() -> bool:
+    import resource
+
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10
+
+
+@pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)
+def test_a_component_runs_with_the_scheduling_its_model_gives_it(agent, procs, tmp_path):
+    """``scheduling`` in system.yaml is applied in the node before it runs: every thread it
+    starts (Zenoh's too) inherits it. What the kernel refuses is a warning event and a line
+    in the node's log; the node runs anyway."""
+    from rra_agent.host.scheduling import observed
+
+    _proc, client, watch = agent
+    rt = start(client, watch, procs, relay_spec("rt_relay"))
+    if _realtime_allowed():
+        assert observed(rt.pid) == Scheduling(policy="fifo", priority=10, cpus=[0])
+        threads = [int(t) for t in os.listdir(f"/proc/{rt.pid}/task")]
+        assert len(threads) > 1  # Zenoh's threads
+        assert all(os.sched_getscheduler(t) == os.SCHED_FIFO for t in threads)
+        assert all(os.sched_getaffinity(t) == {0} for t in threads)
+    odd = start(client, watch, procs, relay_spec("odd_cpus"))
+    assert observed(odd.pid).nice == 5
+    warning = wait_until(
+        lambda: next((e for e in watch.events if e.kind == "scheduling"), None), 10,
+        "the scheduling warning",
+    )  # fmt: skip
+    assert warning.level == "warning" and "odd_cpus" in warning.message
+    assert "asked for CPUs [4095]" in warning.message
+    assert "CPU affinity [4095] refused" in (tmp_path / "nodes" / "odd_cpus.log").read_text()
+    if _realtime_allowed():  # nothing to say about the one that got what it asked for
+        assert not any("rt_relay" in e.message for e in watch.events if e.kind == "scheduling")

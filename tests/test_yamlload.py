@@ -138,6 +138,23 @@ def test_struct_check_error_points_at_the_named_value() -> None:
     assert err.location == at(text, "ab\n")
 
 
+@pytest.mark.parametrize(
+    "sched, message",
+    [
+        ("{policy: fifo}", "a fifo policy needs a priority 1..99, got 0"),
+        ("{policy: rr, priority: 100}", "a rr policy needs a priority 1..99, got 100"),
+        ("{nice: 5, priority: 3}", "priority is for the fifo and rr policies, not 'other'"),
+        ("{nice: -21}", "nice must be -20..19, got -21"),
+        ("{cpus: [0, 0]}", "cpus must be distinct CPU numbers, got [0, 0]"),
+    ],
+)
+def test_a_scheduling_the_kernel_cannot_take_is_a_located_error(sched: str, message: str):
+    text = COMP + f"    scheduling: {sched}\n"
+    err = fail(text)
+    assert err.message == message
+    assert err.location is not None and err.location.line == 5
+
+
 def test_duplicate_names_point_at_the_second() -> None:
     text = COMP + "  - name: b\n    implementation: x\n  - name: a\n    implementation: y\n"
     err = fail(text)

@@ -7,12 +7,21 @@ of: ``standby`` (the Proploss controller pre-started inactive: switch = activati
 paper's figure, emulated with ``RRA_EMULATED_SWAP_DELAY``). Every run is a real system under
 ``rra up``; the figures come from what was recorded on the bus (`rra_agent.demo`).
 
-Prints median and p99 per strategy side by side and writes a PNG of altitude over time
-around the failure (one run per strategy; needs matplotlib: ``pip install -e '.[bench]'``).
-Targets on a 2-core machine: standby <= 10 ms median, <= 25 ms p99, altitude lost < 0.1 m;
-stop-then-start <= 150 ms median.
+Each strategy runs twice: with the real-time scheduling scenarios/quadcopter configures
+(``scheduling`` in system.yaml, ``engines``/``agents`` in rra.yaml) and without it (the
+same package with every ``scheduling`` removed). ``--load`` runs a busy loop on every core
+(``tools/cpuhog.py``) during all runs. Where the kernel refuses real-time scheduling, the
+runs say so and the "scheduled" rows are the same as the others.
 
-    .venv/bin/python tools/bench_recovery.py [--runs 20] [--plot recovery.png]
+Prints median and p99 per strategy beside the goals, then where the time goes: the phases
+of one adaptation, from a cross-process trace (`rra_agent.trace`, ``RRA_TRACE``): fault ->
+Context Monitor's measurement -> Adaptation Engine's selection -> Run-time Resolution
+Engine's plan -> (cold: stop the old node, fork, session open, declarations, ready seen) ->
+connect (rewire + state export) -> activation -> the simulator's first Proploss command
+received -> first physics step driven by it. Writes a PNG of altitude over time around the
+failure (needs matplotlib: ``pip install -e '.[bench]'``).
+
+    .venv/bin/python tools/bench_recovery.py [--runs 20] [--load] [--plot recovery.png]
 """
 
 from __future__ import annotations
@@ -20,15 +29,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import shutil
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import msgspec
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _benchutil import median, p99, print_table
 
+from rra_agent import trace
 from rra_agent.demo import FAULT, RECORD, SCENARIO, recovery_report
 from rra_agent.models.loader import load_package
 from rra_agent.scenario.model import load_scenario
@@ -41,12 +54,91 @@ STRATEGIES = {
     "stop-then-start": ("stop-then-start", 0.0),
     "delayed 0.5 s": ("standby", 0.5),
 }
+#: (median ms, p99 ms) goals: quiet machine, and under --load.
+GOALS = {
+    ("standby", False): (5.0, 8.0),
+    ("standby", True): (8.0, 15.0),
+    ("stop-then-start", False): (50.0, None),
+    ("stop-then-start", True): (50.0, None),
+}
+_ENGINES = [
+    ("detect (fault -> measurement)", "monitor:measurement"),
+    ("decide (-> selection)", "adaptation:selection"),
+    ("deliver (-> resolution engine)", "resolution:selection"),
+    ("plan", "resolution:planned"),
+]
+_SIM = [
+    ("first command received by the sim", "sim:command_from"),
+    ("first physics step with it", "sim:commanded_by"),
+]
+#: The phases of each strategy: (label, the trace mark that ends it), in order.
+PHASES = {
+    "standby": [
+        *_ENGINES,
+        ("connect (rewire, export state)", "engine:replied"),
+        ("activate (-> first command sent)", "node:activated_publish"),
+        *_SIM,
+    ],
+    "stop-then-start": [
+        *_ENGINES,
+        ("export state of the old node", "engine:replied"),
+        ("stop the old node", "engine:stopped"),
+        ("connect (rewire)", "engine:replied"),
+        ("start requested -> forked", "node:forked"),
+        ("fork -> session open", "node:session"),
+        ("declarations, on_start, token", "node:token"),
+        ("ready seen by the engine", "engine:started"),
+        *_SIM,
+    ],
+}
 
 
-def make_case(strategy: str):
+def unscheduled(package: Path, into: Path) -> Path:
+    """A copy of ``package`` without any ``scheduling`` (components, engines, agents)."""
+    shutil.copytree(package, into)
+    system = yaml.safe_load((into / "system.yaml").read_text())
+    for c in system.get("components", []):
+        c.pop("scheduling", None)
+    (into / "system.yaml").write_text(yaml.safe_dump(system, sort_keys=False))
+    manifest = yaml.safe_load((into / "rra.yaml").read_text())
+    manifest.pop("engines", None)
+    manifest.pop("agents", None)
+    (into / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return into
+
+
+def phases(path: Path, strategy: str) -> dict[str, float]:
+    """Seconds per phase of the adaptation after the fault, from one run's trace (each
+    phase ends at the first occurrence of its mark after the previous phase's end)."""
+    lines = trace.read(path)
+    i = next((k for k, x in enumerate(lines) if x["what"] == "sim:fault"), None)
+    if i is None:
+        return {}
+    out: dict[str, float] = {}
+    t = float(lines[i]["t"])
+    for label, mark in PHASES.get(strategy, []):
+        j = next(
+            (
+                k
+                for k in range(i + 1, len(lines))
+                if lines[k]["what"] == mark
+                and (mark != "sim:command_from" or "proploss" in str(lines[k]["node"]))
+            ),
+            None,
+        )
+        if j is None:
+            break
+        out[label] = float(lines[j]["t"]) - t
+        t, i = float(lines[j]["t"]), j
+    return out
+
+
+def make_case(strategy: str, package: Path | None = None):
     """The adaptive case, shortened (fault at 3 s, 6 s long), with ``strategy``."""
     sf = load_scenario(SCENARIO)
     case = next(c for c in sf.cases if c.case == "adaptive")
+    if package is not None:
+        case = dataclasses.replace(case, package=package)
     rep = load_package(case.package).runtime.replacement
     rep = msgspec.structs.replace(
         rep, components={**rep.components, "proploss_controller": strategy}
@@ -63,15 +155,21 @@ def make_case(strategy: str):
 
 
 def one_run(case, delay: float, run_dir: Path):
+    """One run: its report, its recording and its phases (seconds)."""
+    run_dir.mkdir(parents=True)
+    trace_file = run_dir / "trace.jsonl"
     os.environ["RRA_EMULATED_SWAP_DELAY"] = str(delay)
+    os.environ[trace.ENV] = str(trace_file)
     try:
         result = run_case(case, run_dir)
     finally:
         os.environ.pop("RRA_EMULATED_SWAP_DELAY", None)
+        os.environ.pop(trace.ENV, None)
     if result.recording is None:
         raise SystemExit(f"run failed: {result.error}")
     report = recovery_report(result.recording, setpoint=2.0)
-    return report, result.recording
+    strategy = case.replacement.components.get("proploss_controller", "")
+    return report, result.recording, phases(trace_file, strategy) if trace_file.exists() else {}
 
 
 def altitude_trace(rec, report) -> tuple[list[float], list[float]]:
@@ -109,55 +207,113 @@ def plot(traces: dict[str, tuple[list[float], list[float]]], path: Path) -> bool
     return True
 
 
+def _goal(strategy: str, load: bool) -> str:
+    goal = GOALS.get((strategy, load))
+    if goal is None:
+        return ""
+    med, p = goal
+    return f"<= {med:g}" + (f" / <= {p:g}" if p is not None else "")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=20, help="runs per strategy (default 20)")
     ap.add_argument("--plot", default="recovery.png", help="PNG of altitude around the fault")
     ap.add_argument("--only", choices=list(STRATEGIES), action="append", help="these only")
+    ap.add_argument("--load", action="store_true", help="a busy loop on every core meanwhile")
+    ap.add_argument(
+        "--scheduling",
+        choices=["both", "model", "none"],
+        default="both",
+        help="with the package's real-time scheduling, without it, or both (default)",
+    )
     args = ap.parse_args()
-    rows, traces = [], {}
-    with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
-        for name in args.only or list(STRATEGIES):
-            strategy, delay = STRATEGIES[name]
-            case = make_case(strategy)
-            latencies, losses, survived = [], [], 0
-            for i in range(args.runs):
-                report, rec = one_run(case, delay, Path(tmp) / f"{name}-{i}")
-                if report.first_proploss_command is not None:
-                    latencies.append(report.first_proploss_command)
-                if report.altitude_lost is not None:
-                    losses.append(report.altitude_lost)
-                survived += report.airborne
-                if i == 0:
-                    traces[name] = altitude_trace(rec, report)
-                print(f"  {name:<16} run {i + 1}/{args.runs}: latency "
-                      f"{(report.first_proploss_command or float('nan')) * 1e3:6.1f} ms, "
-                      f"altitude lost {report.altitude_lost or float('nan'):.3f} m, "
-                      f"{'airborne' if report.airborne else 'CRASHED'}", flush=True)  # fmt: skip
-            rows.append(
-                [
-                    name,
-                    len(latencies),
-                    median(latencies) * 1e3 if latencies else float("nan"),
-                    p99(latencies) * 1e3 if latencies else float("nan"),
-                    median(losses) if losses else float("nan"),
-                    p99(losses) if losses else float("nan"),
-                    f"{survived}/{args.runs}",
-                ]
-            )
+    hog = None
+    if args.load:
+        hog = subprocess.Popen([sys.executable, str(Path(__file__).parent / "cpuhog.py")])
+        print(f"load: tools/cpuhog.py, {os.cpu_count()} busy loops")
+    rows, traces, breakdown = [], {}, {}
+    try:
+        with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
+            plain = unscheduled(SCENARIO.parent, Path(tmp) / "unscheduled")
+            variants = {"model": None, "none": plain}
+            chosen = ["model", "none"] if args.scheduling == "both" else [args.scheduling]
+            for name in args.only or list(STRATEGIES):
+                for variant in chosen:
+                    row, tr, ph = run_strategy(name, variants[variant], variant, args, Path(tmp))
+                    rows.append(row)
+                    traces.setdefault(name, tr)
+                    breakdown[f"{name}, {variant}"] = ph
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
     print()
+    load = "under a busy loop on every core" if args.load else "quiet machine"
+    print(f"fault -> first Proploss command applied by the simulator ({load})")
+    print("scheduling: model = the real-time settings of scenarios/quadcopter, none = removed")
     print_table(
-        ["strategy", "runs", "latency median ms", "latency p99 ms", "alt. lost median m",
-         "alt. lost p99 m", "airborne"],
+        ["strategy", "scheduling", "runs", "median ms", "p99 ms", "goal ms (median / p99)",
+         "alt. lost median m", "alt. lost p99 m", "airborne"],
         rows,
         digits=3,
     )  # fmt: skip
-    print("latency = fault -> first Proploss command applied by the simulator")
-    print("targets: standby <= 10 ms median, <= 25 ms p99, altitude lost < 0.1 m; "
-          "stop-then-start <= 150 ms median")  # fmt: skip
+    print_phases(breakdown)
     if traces and plot(traces, Path(args.plot)):
         print(f"plot: {Path(args.plot).resolve()}")
     return 0
+
+
+def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path):
+    strategy, delay = STRATEGIES[name]
+    case = make_case(strategy, package)
+    latencies, losses, survived, per_phase = [], [], 0, {}
+    trace_xy = None
+    for i in range(args.runs):
+        report, rec, ph = one_run(case, delay, tmp / f"{name}-{variant}-{i}")
+        if report.first_proploss_command is not None:
+            latencies.append(report.first_proploss_command)
+        if report.altitude_lost is not None:
+            losses.append(report.altitude_lost)
+        survived += report.airborne
+        for k, v in ph.items():
+            per_phase.setdefault(k, []).append(v)
+        if i == 0:
+            trace_xy = altitude_trace(rec, report)
+        print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: latency "
+              f"{(report.first_proploss_command or float('nan')) * 1e3:6.1f} ms, "
+              f"altitude lost {report.altitude_lost or float('nan'):.3f} m, "
+              f"{'airborne' if report.airborne else 'CRASHED'}", flush=True)  # fmt: skip
+    row = [
+        name,
+        variant,
+        len(latencies),
+        median(latencies) * 1e3 if latencies else float("nan"),
+        p99(latencies) * 1e3 if latencies else float("nan"),
+        _goal(strategy if delay == 0 else "", args.load),
+        median(losses) if losses else float("nan"),
+        p99(losses) if losses else float("nan"),
+        f"{survived}/{args.runs}",
+    ]
+    return row, trace_xy, per_phase
+
+
+def print_phases(breakdown: dict[str, dict[str, list[float]]]) -> None:
+    """Median ms per phase (rows) for each strategy and scheduling (columns)."""
+    names = [n for n in breakdown if breakdown[n]]
+    if not names:
+        return
+    print()
+    print("where the time goes: median ms per phase (cross-process trace, RRA_TRACE)")
+    rows = []
+    labels = list(dict.fromkeys(label for ph in PHASES.values() for label, _ in ph))
+    for label in labels:
+        if any(label in breakdown[n] for n in names):
+            rows.append([label] + [
+                median(breakdown[n][label]) * 1e3 if label in breakdown[n] else float("nan")
+                for n in names
+            ])  # fmt: skip
+    print_table(["phase", *names], rows, digits=2)
 
 
 if __name__ == "__main__":

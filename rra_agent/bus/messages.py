@@ -29,7 +29,7 @@ from typing import Any, Generic, Literal, TypeVar
 
 import msgspec
 
-from rra_agent.models.system import Implementation, ParamType, Supervision
+from rra_agent.models.system import Implementation, ParamType, Scheduling, Supervision
 
 T = TypeVar("T")
 
@@ -288,6 +288,7 @@ class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     #: Declared type and bounds of each parameter (set_params is checked against them).
     decl: dict[str, ParamDecl] = {}
     supervision: Supervision = Supervision()
+    scheduling: Scheduling = Scheduling()
     #: Folders put first on the import path (the system package's, for its own node classes).
     path: list[str] = []
     #: The newest leader fence the host agent has accepted: the node refuses older ones.

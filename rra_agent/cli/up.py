@@ -20,7 +20,7 @@ from pathlib import Path
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.deployment import Deployment, deploy
-from rra_agent.host.agent import HostAgent, security
+from rra_agent.host.agent import HostAgent, schedule_self, security
 from rra_agent.host.catalog import Catalog
 from rra_agent.models.system import Command, Supervision
 
@@ -104,6 +104,7 @@ def engine_specs(
                 host=host,
                 implementation=Command(command=cmd),
                 supervision=ENGINE_SUPERVISION,
+                scheduling=dep.package.manifest.engines.scheduling,
             )
             for name in replica_names(engine, replicas)
         ]
@@ -146,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     )
     catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
     catalog.add_builtins(specs)
+    schedule_self(dep.package.manifest.agents.scheduling, "rra up")
     agent = HostAgent(
         dep.system,
         args.host,

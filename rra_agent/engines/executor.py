@@ -153,6 +153,7 @@ def spec_for(
         state=state,
         decl={k: ParamDecl(type=p.type, min=p.min, max=p.max) for k, p in c.parameters.items()},
         supervision=c.supervision,
+        scheduling=c.scheduling,
         path=list(path),
     )
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -49,9 +50,11 @@ from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
+from rra_agent.host import scheduling
 from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.processes import LocalHost, process_state
 from rra_agent.host.supervisor import LIVE, Notice, State, StopPolicy, Supervisor, Transition
+from rra_agent.models.system import Scheduling
 
 TICK = 0.02
 _REQ = m.Codec[m.HostRequest](m.HostRequest)
@@ -152,6 +155,21 @@ class HostAgent:
         self._put(msg)
         for observe in self.observers:
             observe(msg)
+        if t.state == State.RUNNING and p is not None and t.pid:
+            self._check_scheduling(p.spec, t.pid)
+
+    def _check_scheduling(self, spec: m.NodeSpec, pid: int) -> None:
+        """A node asked for a scheduling the kernel did not grant: say so (it runs anyway)."""
+        if spec.scheduling.is_default:
+            return
+        problems = scheduling.differences(spec.scheduling, pid)
+        if problems:
+            self.event(
+                "scheduling",
+                f"{spec.name}: " + "; ".join(problems),
+                level="warning",
+                nodes=(spec.name,),
+            )
 
     def _on_notice(self, n: Notice) -> None:
         self.event(n.kind, n.message, level="warning", nodes=n.nodes)
@@ -513,6 +531,15 @@ def configure(parser) -> None:  # argparse.ArgumentParser
     add_bus_arguments(parser)
 
 
+def schedule_self(wanted: Scheduling, who: str) -> None:
+    """The host agent's own scheduling (the manifest's ``agents``), before its session (and
+    the router's threads) exists; a refusal is one warning line."""
+    if wanted.is_default:
+        return
+    for problem in scheduling.apply(wanted, reset_on_fork=True):
+        print(f"{who}: scheduling: {problem}; running without it", file=sys.stderr, flush=True)
+
+
 def run(args) -> int:  # argparse.Namespace
     """``rra agent``: serve one host until SIGINT/SIGTERM."""
     from rra_agent.bus.config import bus_from_args
@@ -524,6 +551,7 @@ def run(args) -> int:  # argparse.Namespace
     catalog = Catalog(
         dep.configured, args.host, package_root=dep.package.root, default_host=args.hub
     )
+    schedule_self(dep.package.manifest.agents.scheduling, f"rra agent {args.host}")
     agent = HostAgent(
         dep.system,
         args.host,

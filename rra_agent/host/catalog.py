@@ -117,5 +117,6 @@ class Catalog:
             implementation=impl,
             decl=decl,
             supervision=c.supervision,
+            scheduling=c.scheduling,
             path=list(self.path) if isinstance(impl, str) else [],
         )

@@ -36,11 +36,24 @@ from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import check_chunk
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.host import heartbeat as hb
+from rra_agent.host import scheduling
 from rra_agent.host.forkserver import ForkServer, ForkServerError, become_subreaper, die_with_parent
 from rra_agent.node import SPEC_ENV
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
 Prober = Callable[[str, int, float], None]
+
+
+def _preexec(spec: NodeSpec) -> Callable[[], None]:
+    """In the exec'd child, before the exec: die with the host agent, take the component's
+    scheduling (a refusal goes to the node's log, which is already its stderr)."""
+
+    def setup() -> None:
+        die_with_parent()
+        for problem in scheduling.apply(spec.scheduling):
+            os.write(2, f"rra node {spec.name}: scheduling: {problem}\n".encode())
+
+    return setup
 
 
 def node_command(spec: NodeSpec) -> list[str]:
@@ -223,7 +236,7 @@ class LocalHost:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 pass_fds=[self.heartbeats.fd],
-                preexec_fn=die_with_parent if sys.platform == "linux" else None,
+                preexec_fn=_preexec(spec) if sys.platform == "linux" else None,
             )
         self._popen[proc.pid] = proc
         return proc.pid

@@ -7,8 +7,13 @@ default file names below.
 from __future__ import annotations
 
 from rra_agent.models.base import Model
+from rra_agent.models.system import Scheduling
 
 MANIFEST = "rra.yaml"
+
+
+class ProcessSettings(Model, frozen=True):
+    scheduling: Scheduling = Scheduling()
 
 
 class Manifest(Model, frozen=True):
@@ -22,3 +27,9 @@ class Manifest(Model, frozen=True):
     adaptation: str | None = "adaptation.rra"
     #: The deployment-time selection used when none is given on the command line.
     default_selection: list[str] = []
+    #: How the engine processes (Context Monitor, Adaptation Engine, Run-time Resolution
+    #: Engine) are scheduled: they are on every adaptation's critical path.
+    engines: ProcessSettings = ProcessSettings()
+    #: How the host agents (``rra up``, ``rra agent``) schedule themselves: each runs its
+    #: host's Zenoh router, which every sample of the host passes through.
+    agents: ProcessSettings = ProcessSettings()

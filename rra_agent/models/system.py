@@ -139,6 +139,40 @@ class Supervision(Model, frozen=True):
             raise ValueError("max_restarts must be at least 1")
 
 
+class Scheduling(Model, frozen=True):
+    """How the kernel schedules a component's process, applied by its host agent at start
+    (before the node runs any of its code; every thread it starts inherits it).
+
+    ``policy``: ``fifo`` / ``rr`` are real-time (SCHED_FIFO / SCHED_RR) with ``priority``
+    1..99 (a real-time process runs before every normal one: give it to the few processes
+    on the critical path, and keep their callbacks short); ``other`` (the default), ``batch``
+    and ``idle`` are the normal policies, ordered among themselves by ``nice`` (-20..19,
+    lower runs first). ``cpus``: the CPUs the process may run on (empty: all). Where the
+    kernel refuses (no CAP_SYS_NICE, RLIMIT_RTPRIO 0, a CPU that does not exist), the node
+    runs without it and its host agent says so in a warning event.
+    """
+
+    policy: Literal["other", "batch", "idle", "fifo", "rr"] = "other"
+    priority: int = 0
+    nice: int = 0
+    cpus: list[int] = []
+
+    def __post_init__(self) -> None:
+        realtime = self.policy in ("fifo", "rr")
+        if realtime and not 1 <= self.priority <= 99:
+            raise ValueError(f"a {self.policy} policy needs a priority 1..99, got {self.priority}")
+        if not realtime and self.priority != 0:
+            raise ValueError(f"priority is for the fifo and rr policies, not {self.policy!r}")
+        if not -20 <= self.nice <= 19:
+            raise ValueError(f"nice must be -20..19, got {self.nice}")
+        if any(c < 0 for c in self.cpus) or len(set(self.cpus)) != len(self.cpus):
+            raise ValueError(f"cpus must be distinct CPU numbers, got {self.cpus}")
+
+    @property
+    def is_default(self) -> bool:
+        return self == Scheduling()
+
+
 class Component(Model, frozen=True):
     name: str
     implementation: Implementation
@@ -151,6 +185,7 @@ class Component(Model, frozen=True):
     host: str | None = None
     description: str | None = None
     supervision: Supervision = Supervision()
+    scheduling: Scheduling = Scheduling()
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.ports]

@@ -584,6 +584,10 @@ def run_node(spec: NodeSpec) -> int:
     """
     from rra_agent.bus.config import BusConfig
 
+    if spec.implementation == "rra_agent.host.container":
+        from rra_agent.host.container import run_container
+
+        return run_container(spec, BusConfig.from_env())
     try:
         if not isinstance(spec.implementation, str):
             raise ValueError("an external-command implementation is run directly, not here")

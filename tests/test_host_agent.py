@@ -397,3 +397,143 @@ def test_a_component_runs_with_the_scheduling_its_model_gives_it(agent, procs, t
     assert "CPU affinity [4095] refused" in (tmp_path / "nodes" / "odd_cpus.log").read_text()
     if _realtime_allowed():  # nothing to say about the one that got what it asked for
         assert not any("rt_relay" in e.message for e in watch.events if e.kind == "scheduling")
+
+
+# ---- component containers -----------------------------------------------------------------
+def container_spec(name: str, offset: float | None = None, **kw) -> m.NodeSpec:
+    impl = {"c_faulty": "faulty.Faulty", "c_badstart": "faulty.BadStart"}.get(
+        name, "rra_agent.nodes.generic.Relay"
+    )
+    ports = {
+        "c_faulty": {"in": m.PortSpec(direction="subscribe", type="X", keys=[K.data("src")])},
+        "c_badstart": {},
+    }.get(name)
+    params = {} if name in ("c_faulty", "c_badstart") else {"offset": offset or 1.0}
+    return m.NodeSpec(
+        system=SYSTEM, name=name, host="h1", implementation=impl, params=params,
+        ports=ports if ports is not None else {
+            "in": m.PortSpec(direction="subscribe", type="X", keys=[K.data("src")]),
+            "out": m.PortSpec(direction="publish", type="X", keys=[K.data(f"{name}/out")]),
+        },
+        **kw,
+    )  # fmt: skip
+
+
+class Outputs:
+    """Data samples of the given output keys, by key."""
+
+    def __init__(self, session: zenoh.Session, names: list[str]) -> None:
+        self.by: dict[str, list[dict]] = {n: [] for n in names}
+        self.subs = [
+            session.declare_subscriber(
+                K.data(f"{n}/out"),
+                lambda s, n=n: self.by[n].append(decode_data(s.payload.to_bytes())),
+            )
+            for n in names
+        ]
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+
+
+def send_until_seen(client: BusClient, outs: Outputs, names: list[str], value: float) -> None:
+    pub = client.session.declare_publisher(K.data("src"))
+    try:
+        wait_until(lambda: pub.matching_status.matching, 5, "the relays' subscribers")
+
+        def seen() -> bool:
+            pub.put(encode_data({"value": value}))
+            return all(any(o["value"] > value for o in outs.by[n]) for n in names)
+
+        wait_until(seen, 10, f"samples through {names}", interval=0.05)
+    finally:
+        pub.undeclare()
+
+
+def test_components_in_a_container_share_a_process_and_keep_their_own_endpoints(agent, procs):
+    """``container: box``: c_relay1 and c_relay2 run in one process (one pid, not the agent's
+    and not each other's), each with its own ports, parameters, control endpoint and token;
+    a parameter set on one is not set on the other; one stops alone, the other goes on."""
+    proc, client, watch = agent
+    one = start(client, watch, procs, container_spec("c_relay1", 1.0))
+    two = start(client, watch, procs, container_spec("c_relay2", 2.0))
+    assert one.pid == two.pid and one.pid not in (proc.pid, None)
+    assert "forkserver" in cmdline(one.pid)  # forked like a node, not a thread of the agent
+    outs = Outputs(client.session, ["c_relay1", "c_relay2"])
+    try:
+        send_until_seen(client, outs, ["c_relay1", "c_relay2"], 10.0)
+        assert {o["value"] for o in outs.by["c_relay1"]} == {11.0}
+        assert {o["value"] for o in outs.by["c_relay2"]} == {12.0}
+        ok(client.node("c_relay1", m.SetParams(params={"offset": 5.0})))
+        assert ok(client.node("c_relay1", m.Describe()))["params"]["offset"] == 5.0  # type: ignore[index]
+        assert ok(client.node("c_relay2", m.Describe()))["params"]["offset"] == 2.0  # type: ignore[index]
+        assert ok(client.node("c_relay2", m.Describe()))["pid"] == one.pid  # type: ignore[index]
+        bad = client.node("c_relay2", m.SetParams(params={"offset": 99.0}))
+        assert isinstance(bad, m.Err)  # its own declared bounds
+        # rewire one input alone: c_relay2 now listens to "src2" only
+        ok(client.node("c_relay2", m.Rewire(port="in", keys=[K.data("src2")])))
+        n = len(watch.states)
+        ok(client.host("h1", m.StopNode(node="c_relay1")))
+        stopped = wait_until(lambda: watch.state("c_relay1", "STOPPED", n), 10, "STOPPED")
+        assert stopped.pid == one.pid
+        assert pid_alive(one.pid)  # the container and c_relay2 go on
+        assert not list(client.session.liveliness().get(K.alive("h1", "c_relay1"), timeout=1))
+        assert list(client.session.liveliness().get(K.alive("h1", "c_relay2"), timeout=1))
+        with pytest.raises(Exception):  # noqa: B017 -- nobody answers for c_relay1 any more
+            ok(client.node("c_relay1", m.Ping(), timeout=1.0))
+        # and it starts again in the same container
+        again = start(client, watch, procs, container_spec("c_relay1", 1.0))
+        assert again.pid == one.pid
+    finally:
+        outs.close()
+
+
+def test_a_failing_component_does_not_take_its_neighbours_down(agent, procs):
+    """c_faulty raises in every callback and c_badstart in on_start: both are counted and
+    reported (c_badstart FATAL, nothing else), c_relay2 in the same process relays on."""
+    _proc, client, watch = agent
+    relay = start(client, watch, procs, container_spec("c_relay2", 2.0))
+    faulty = start(client, watch, procs, container_spec("c_faulty"))
+    assert faulty.pid == relay.pid
+    n = len(watch.states)
+    ok(client.host("h1", m.StartNode(spec=container_spec("c_badstart"))))
+    fatal = wait_until(lambda: watch.state("c_badstart", "FATAL", n), 10, "c_badstart FATAL")
+    assert "cannot start on purpose" in fatal.reason
+    outs = Outputs(client.session, ["c_relay2"])
+    try:
+        send_until_seen(client, outs, ["c_relay2"], 20.0)
+    finally:
+        outs.close()
+    stats = ok(client.node("c_faulty", m.Describe()))
+    assert stats["received"] >= 1  # type: ignore[index]
+    assert pid_alive(relay.pid)
+    assert not any(s.node == "c_relay2" and s.state != "RUNNING"
+                   for s in watch.states[n:])  # fmt: skip
+
+
+def test_a_killed_container_restarts_with_every_component(agent, procs):
+    proc, client, watch = agent
+    one = start(client, watch, procs, container_spec("c_relay1", 1.0))
+    two = start(client, watch, procs, container_spec("c_relay2", 2.0))
+    n = len(watch.states)
+    os.kill(one.pid, signal.SIGKILL)
+    for name in ("c_relay1", "c_relay2"):
+        back = wait_until(lambda name=name: watch.state(name, "RUNNING", n), 15, f"{name} back")
+        assert back.pid not in (None, one.pid)
+        procs.watch(back.pid)
+    assert {watch.state(x, "RUNNING", n).pid for x in ("c_relay1", "c_relay2")} != {two.pid}  # type: ignore[union-attr]
+    assert any(s.node == "c_relay1" and s.state == "BACKOFF" for s in watch.states[n:])
+    outs = Outputs(client.session, ["c_relay1", "c_relay2"])
+    try:
+        send_until_seen(client, outs, ["c_relay1", "c_relay2"], 30.0)
+    finally:
+        outs.close()
+    # Ctrl-C: every component unloaded, the container gone, nothing left
+    pid = watch.state("c_relay1", "RUNNING", n).pid  # type: ignore[union-attr]
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(15) == 0
+    assert not pid_alive(pid)  # type: ignore[arg-type]
+    stops = [s for s in watch.states if s.node.startswith("c_") and s.state != "RUNNING"
+             and s.previous == "STOPPING"]  # fmt: skip
+    assert stops and all(s.state == "STOPPED" for s in stops)

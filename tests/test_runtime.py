@@ -145,6 +145,40 @@ def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(syste
         sub.undeclare()
 
 
+def test_a_swap_inside_a_component_container(system, tmp_path):
+    """direct, filtered (standby) and sink in one container: the Run-time Resolution Engine
+    swaps and rewires them as it does processes; the switch is an activation inside the
+    same process, and the sink's output goes through filtered."""
+    from rra_agent.node import decode_data
+
+    pkg = package_copy(tmp_path)
+    edit_yaml(pkg / "runtime.yaml",
+              lambda d: d["replacement"].update(components={"filtered": "standby"}))  # fmt: skip
+
+    def contain(d: dict) -> None:
+        for c in d["components"]:
+            if c["name"] in ("direct", "filtered", "sink"):
+                c["container"] = "box"
+
+    edit_yaml(pkg / "system.yaml", contain)
+    sys_ = system(pkg)
+    st = sys_.status
+    box = {sys_.node(st, n)["pid"] for n in ("direct", "filtered", "sink")}
+    assert len(box) == 1 and sys_.node(st, "source")["pid"] not in box
+    out: list[dict] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
+    )
+    try:
+        sys_.set_level(7.0)
+        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the standby switch")
+        assert {sys_.node(st, n)["pid"] for n in ("filtered", "sink")} == box
+        assert sys_.ctl("filtered", m.Describe()).result["active"] is True
+        wait_until(lambda: any(o["value"] >= 100 for o in out), 10, "samples through filtered")
+    finally:
+        sub.undeclare()
+
+
 def test_random_bytes_on_every_key_crash_nothing(system):
     sys_ = system()
     session = sys_.client.session

@@ -567,3 +567,24 @@ def test_a_node_process_runs_under_its_acl(router: Router, certs: Path, sessions
         assert proc.wait(10) == 0
     finally:
         stop_process(proc)
+
+
+def test_components_in_containers_are_refused_with_certs(tmp_path):
+    """A container's components share one Zenoh identity: with --certs (one identity and one
+    access control per node) they are refused with one line, before anything starts."""
+    import shutil
+
+    import yaml
+
+    from rra_agent.deployment import deploy
+    from rra_agent.errors import RraError
+    from rra_agent.host.agent import security
+
+    pkg = tmp_path / "pkg"
+    shutil.copytree(Path(__file__).parent / "data" / "relay_system", pkg)
+    system = yaml.safe_load((pkg / "system.yaml").read_text())
+    system["components"][1]["container"] = "box"
+    (pkg / "system.yaml").write_text(yaml.safe_dump(system))
+    args = argparse.Namespace(certs=str(tmp_path / "certs"))
+    with pytest.raises(RraError, match=r"--certs: direct run in component containers"):
+        security(args, deploy(pkg), "local")

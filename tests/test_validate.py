@@ -462,9 +462,9 @@ def test_errors_of_every_file_are_collected(tmp_path: Path) -> None:
     sys_at = "{}:{}:{}".format(root / "system.yaml", *position(system, "hots"))
     rt_at = "{}:{}:{}".format(root / "runtime.yaml", *position(runtime, "stop\n"))
     assert heads == [
-        f"{sys_at}: unknown field 'hots' (did you mean 'host'? known: binding, description,"
-        " host, implementation, implementations, name, optional, parameters, ports, scheduling,"
-        " supervision)",
+        f"{sys_at}: unknown field 'hots' (did you mean 'host'? known: binding, container,"
+        " description, host, implementation, implementations, name, optional, parameters,"
+        " ports, scheduling, supervision)",
         f"{root / 'deployment.yaml'}: no such file (the deployment model)",
         f"{rt_at}: Invalid enum value 'stop'",
     ]

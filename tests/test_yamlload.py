@@ -155,6 +155,23 @@ def test_a_scheduling_the_kernel_cannot_take_is_a_located_error(sched: str, mess
     assert err.location is not None and err.location.line == 5
 
 
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        ("  - name: b\n    implementation: pkg.B\n    container: a\n",
+         "container 'a' has a component's name"),
+        ("  - name: b\n    implementation: pkg.B\n    container: k\n    host: h1\n"
+         "  - name: c\n    implementation: pkg.C\n    container: k\n    host: h2\n",
+         "the components of container 'k' are on two hosts"),
+        ("  - name: b\n    implementation: {command: [tool]}\n    container: k\n",
+         "a component in a container needs Python implementations"),
+    ],
+)  # fmt: skip
+def test_an_impossible_container_is_a_located_error(extra: str, message: str) -> None:
+    err = fail(COMP + extra)
+    assert err.message == message and err.location is not None
+
+
 def test_duplicate_names_point_at_the_second() -> None:
     text = COMP + "  - name: b\n    implementation: x\n  - name: a\n    implementation: y\n"
     err = fail(text)

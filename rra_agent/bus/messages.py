@@ -333,6 +333,22 @@ class ListNodes(Msg, tag="list_nodes"):
 HostRequest = StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
 
 
+# ---- component containers (host agent -> its containers) ----------------------------------
+class LoadNode(Msg, tag="load_node"):
+    """Load a component into this container and start it (replies once it is ready)."""
+
+    spec: NodeSpec
+
+
+class UnloadNode(Msg, tag="unload_node"):
+    """Stop a component of this container and unload it."""
+
+    node: str
+
+
+ContainerRequest = LoadNode | UnloadNode | Ping | Stats | Describe
+
+
 # ---- engine control ---------------------------------------------------------------------
 class Status(Msg, tag="status"):
     pass

@@ -103,6 +103,18 @@ class ZenohTransport:
             self.session.declare_subscriber(k, self._on_sample(port)) for k in keys
         ]
 
+    def close(self) -> None:
+        """Undeclare every publisher and subscriber (a component unloaded from a container;
+        a node process closes its session instead)."""
+        self.core = None
+        for pub in self.publishers.values():
+            pub.undeclare()
+        for sub in [s for subs in self.subscribers.values() for s in subs] + self.raw:
+            sub.undeclare()
+        self.publishers.clear()
+        self.subscribers.clear()
+        self.raw.clear()
+
     def subscribe(self, key_expr: str, callback) -> None:
         unpack = _STAMP.unpack
 

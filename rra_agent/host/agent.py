@@ -30,6 +30,7 @@ children's parent-death signal is tied to the spawning thread).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -52,6 +53,7 @@ from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
 from rra_agent.host import scheduling
 from rra_agent.host.catalog import Catalog, Refused, check_name
+from rra_agent.host.members import Members
 from rra_agent.host.processes import LocalHost, process_state
 from rra_agent.host.supervisor import LIVE, Notice, State, StopPolicy, Supervisor, Transition
 from rra_agent.models.system import Scheduling
@@ -61,6 +63,9 @@ _REQ = m.Codec[m.HostRequest](m.HostRequest)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ANY = m.Codec[Any](Any)
+_CREQ = m.Codec[m.ContainerRequest](m.ContainerRequest)
+#: How long a container may take to load (start) or unload a component.
+CONTAINER_TIMEOUT = 10.0
 #: Signals a fault-injection request may send.
 INJECTABLE = frozenset({signal.SIGKILL, signal.SIGSTOP, signal.SIGCONT, signal.SIGTERM})
 
@@ -104,6 +109,8 @@ class HostAgent:
         self.supervisor = Supervisor(
             stop=stop, listener=self._on_transition, notices=self._on_notice
         )
+        #: Components running inside this host's containers (`host/container.py`).
+        self.members = Members(host, self._send_container, self._on_transition)
         self.loop = MainLoop(clock)
         self.loop.on_wake = self._reap
         self.counters = Counters()
@@ -137,8 +144,10 @@ class HostAgent:
 
     # ---- what this agent tells the world -----------------------------------------------
     def _on_transition(self, t: Transition) -> None:
-        p = self.supervisor.procs.get(t.node)
+        p = self.supervisor.procs.get(t.node) or self.members.members.get(t.node)
         trace.mark(f"agent:{t.state.value}", t.node)
+        if t.node in self.catalog.containers and t.node in self.supervisor.procs:
+            self.members.on_container(t.node, t.state, t.pid, t.now)
         msg = m.NodeState(
             stamp=time.time(),
             node=t.node,
@@ -155,8 +164,8 @@ class HostAgent:
         self._put(msg)
         for observe in self.observers:
             observe(msg)
-        if t.state == State.RUNNING and p is not None and t.pid:
-            self._check_scheduling(p.spec, t.pid)
+        if t.state == State.RUNNING and t.node in self.supervisor.procs and t.pid:
+            self._check_scheduling(self.supervisor.procs[t.node].spec, t.pid)
 
     def _check_scheduling(self, spec: m.NodeSpec, pid: int) -> None:
         """A node asked for a scheduling the kernel did not grant: say so (it runs anyway)."""
@@ -221,7 +230,68 @@ class HostAgent:
         if parsed is None or parsed[0] != self.host or sample.kind != zenoh.SampleKind.PUT:
             return  # a token's disappearance is not evidence about the process
         trace.mark("agent:alive", parsed[1])
-        self.loop.post(lambda: self.supervisor.on_ready(parsed[1], self.clock()))
+        self.loop.post(lambda: self._on_ready(parsed[1]))
+
+    def _on_ready(self, name: str) -> None:
+        if name in self.members.members:
+            self.members.on_ready(name, self.clock())
+        else:
+            self.supervisor.on_ready(name, self.clock())
+
+    # ---- containers ------------------------------------------------------------------
+    def _send_container(self, container: str, req: m.ContainerRequest, on_reply) -> None:
+        """A request to one of this host's containers; ``on_reply`` runs on the main loop
+        (an `Err` when the container does not answer in time)."""
+        got: list[m.Reply] = []
+
+        def on_sample(reply: zenoh.Reply) -> None:
+            if reply.ok is not None and not got:
+                with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+                    got.append(_REPLY.decode(reply.ok.payload.to_bytes()))
+
+        def on_done() -> None:
+            answer = got[0] if got else m.Err(message=f"container {container}: no reply",
+                                               code="timeout")  # fmt: skip
+            self.loop.post(lambda: on_reply(answer))
+
+        if self.session is None:
+            on_reply(m.Err(message="the host agent is not on the bus", code="unavailable"))
+            return
+        self.session.get(
+            self.keys.node_ctl(container),
+            zenoh.handlers.Callback(on_sample, on_done),
+            payload=_CREQ.encode(req),
+            timeout=CONTAINER_TIMEOUT,
+        )
+
+    def _ensure_container(self, container: str) -> None:
+        sup = self.supervisor
+        if container not in sup.procs:
+            sup.add(self.catalog.container_spec(container), self.local)
+        if not sup.procs[container].want_running:
+            sup.start(container, self.clock())
+
+    def _start_member(self, spec: m.NodeSpec, container: str) -> m.Reply:
+        mb = self.members.members.get(spec.name)
+        if mb is not None and mb.want_running and mb.state in (*LIVE, State.BACKOFF):
+            if mb.state == State.STOPPING:
+                return m.Err(message=f"node {spec.name} is stopping", code="busy")
+            same = m.spec_digest(mb.spec) == m.spec_digest(spec)
+            self.members.replace_spec(spec.name, spec)
+            return m.Ok(result={"pid": mb.pid, "state": mb.state.value, "already": True,
+                                "same": same})  # fmt: skip
+        self._ensure_container(container)
+        mb = self.members.start(spec, container, self.clock())
+        return m.Ok(result={"pid": mb.pid, "state": mb.state.value, "container": container})
+
+    def _stop_member(self, name: str) -> m.Reply:
+        mb = self.members.members[name]
+        if mb.state in (State.STOPPED, State.EXITED) and not mb.want_running:
+            return m.Ok(result={"state": mb.state.value, "already": True})
+        # The container stays, even empty, until the host agent stops: a swap inside it
+        # (unload, load) must not race the container's own stop.
+        self.members.stop(name, self.clock())
+        return m.Ok(result={"state": mb.state.value})
 
     # ---- probes ----------------------------------------------------------------------
     def _probe_later(self, name: str, pid: int, timeout: float) -> None:
@@ -292,7 +362,9 @@ class HostAgent:
                 return self._stop(name)
             case m.UpdateSpec(specs=specs):
                 for spec in specs:
-                    if spec.name in self.supervisor.procs:
+                    if spec.name in self.members.members:
+                        self.members.replace_spec(spec.name, self._fenced(spec))
+                    elif spec.name in self.supervisor.procs:
                         self.supervisor.replace_spec(spec.name, self._fenced(spec))
                 return m.Ok()
             case m.SignalNode(node=name, signal=sig):
@@ -362,8 +434,11 @@ class HostAgent:
     def _start(self, spec: m.NodeSpec) -> m.Reply:
         trace.mark("agent:start", spec.name)
         self._learn_rerun()
-        sup, now = self.supervisor, self.clock()
         spec = self._fenced(spec)
+        container = self.catalog.container_of(spec.name)
+        if container is not None:
+            return self._start_member(spec, container)
+        sup, now = self.supervisor, self.clock()
         p = sup.procs.get(spec.name)
         if p is not None and p.state in (*LIVE, State.BACKOFF):
             same = m.spec_digest(p.spec) == m.spec_digest(spec)
@@ -383,6 +458,8 @@ class HostAgent:
         return m.Ok(result={"pid": p.pid, "state": p.state.value})
 
     def _stop(self, name: str) -> m.Reply:
+        if name in self.members.members:
+            return self._stop_member(name)
         p = self.supervisor.procs.get(name)
         if p is None or p.state in (State.STOPPED, State.EXITED):
             return m.Ok(result={"state": p.state.value if p else "STOPPED", "already": True})
@@ -403,7 +480,7 @@ class HostAgent:
                 restarts=p.restarts,
                 digest=m.spec_digest(p.spec),
             )
-            for name, p in self.supervisor.procs.items()
+            for name, p in [*self.supervisor.procs.items(), *self.members.members.items()]
         ]
 
     def stats(self) -> m.ProcessStats:
@@ -486,8 +563,11 @@ class HostAgent:
             self.session = None
 
     def _shutdown(self) -> None:
-        """Stop every node with the escalation policy; wait until all have exited."""
+        """Stop every node with the escalation policy; wait until all have exited (the
+        components in containers with their containers, which unload them first)."""
         sup = self.supervisor
+        for name in list(self.members.members):
+            self.members.stop(name, self.clock())
         sup.stop_all(self.clock())
         pol = sup.stop_policy
         deadline = self.clock() + pol.sigint_timeout + pol.sigterm_timeout + 2.0
@@ -502,6 +582,14 @@ def security(args, dep, host: str) -> dict[str, Any]:  # argparse.Namespace, Dep
     if not getattr(args, "certs", None):
         return {}
     from rra_agent.security.acl import access_control
+
+    contained = sorted(c.name for c in dep.configured.components if c.container)
+    if contained:
+        raise RraError(
+            f"--certs: {', '.join(contained)} run in component containers, which share one "
+            "Zenoh identity and cannot each get their own access control yet; run them as "
+            "processes of their own (remove 'container') to use --certs"
+        )
 
     return {"certs": args.certs, "access_control": access_control(dep, host)}
 

@@ -71,6 +71,43 @@ class Catalog:
         """Processes this host agent starts on its own (never from a request)."""
         self.builtins.update((s.name, s) for s in specs)
 
+    def container_of(self, name: str) -> str | None:
+        """The container a component of this host runs in (None: a process of its own)."""
+        c = self.components.get(name)
+        return c.container if c is not None else None
+
+    @property
+    def containers(self) -> frozenset[str]:
+        return frozenset(c.container for c in self.components.values() if c.container)
+
+    def container_spec(self, container: str) -> m.NodeSpec:
+        """The spec of a container process: what it may load (its members' declared
+        implementations and parameters), made here, never taken from the bus."""
+        from rra_agent.host.container import CONTAINER
+
+        members = [c for c in self.components.values() if c.container == container]
+        scheduling = next((c.scheduling for c in members if not c.scheduling.is_default), None)
+        return m.NodeSpec(
+            system=self.system,
+            name=container,
+            host=self.host,
+            implementation=CONTAINER,
+            params={
+                "members": {
+                    c.name: {
+                        "implementations": [c.implementation, *c.implementations.values()],
+                        "decl": {
+                            k: msgspec.to_builtins(m.ParamDecl(type=p.type, min=p.min, max=p.max))
+                            for k, p in c.parameters.items()
+                        },
+                    }
+                    for c in members
+                }
+            },
+            path=list(self.path),
+            **({"scheduling": scheduling} if scheduling is not None else {}),
+        )
+
     @property
     def implementations(self) -> frozenset[str]:
         """Python implementations this host may run (the fork server pre-imports them)."""

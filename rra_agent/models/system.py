@@ -186,6 +186,9 @@ class Component(Model, frozen=True):
     description: str | None = None
     supervision: Supervision = Supervision()
     scheduling: Scheduling = Scheduling()
+    #: Run in this component container of the host (with the other components naming it)
+    #: instead of a process of its own; Python implementations only.
+    container: str | None = None
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.ports]
@@ -194,6 +197,10 @@ class Component(Model, frozen=True):
             raise ValueError(f"duplicate port name(s) {', '.join(dup)}")
         if self.binding == "runtime" and not self.optional:
             raise ValueError("a run-time-bound component must be optional")
+        if self.container is not None:
+            impls = (self.implementation, *self.implementations.values())
+            if not all(isinstance(i, str) for i in impls):
+                raise ValueError("a component in a container needs Python implementations")
 
     def port(self, name: str) -> Port | None:
         return next((p for p in self.ports if p.name == name), None)
@@ -256,6 +263,14 @@ class SystemModel(Model, frozen=True):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"duplicate component name(s) {', '.join(dup)}")
+        hosts: dict[str, str | None] = {}
+        for c in self.components:
+            if c.container is None:
+                continue
+            if c.container in names:
+                raise ValueError(f"container {c.container!r} has a component's name")
+            if hosts.setdefault(c.container, c.host) != c.host:
+                raise ValueError(f"the components of container {c.container!r} are on two hosts")
 
     def component(self, name: str) -> Component | None:
         return next((c for c in self.components if c.name == name), None)

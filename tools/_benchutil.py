@@ -108,3 +108,17 @@ def print_table(
     file: TextIO | None = None,
 ) -> None:
     print(format_table(headers, rows, digits), file=file or sys.stdout, flush=True)
+
+
+def interrupt(proc, timeout: float = 60.0) -> None:  # subprocess.Popen
+    """Stop a process as Ctrl-C does (SIGINT); SIGKILL if it has not exited in ``timeout``."""
+    import signal
+    import subprocess
+
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()

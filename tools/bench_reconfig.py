@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -34,7 +33,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _benchutil import median, p99, print_table
+from _benchutil import interrupt, median, p99, print_table
 
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
@@ -220,12 +219,7 @@ def run_case(n: int, standby: bool, repeat: int, containers: int = 0, shared: bo
             return Case(times, switch, started, procs, rss, pss)
         finally:
             session.close()
-            agent.send_signal(signal.SIGINT)
-            try:
-                agent.wait(60)
-            except subprocess.TimeoutExpired:
-                agent.kill()
-                agent.wait()
+            interrupt(agent)
 
 
 def standby_specs(dep, keys, variant: str) -> list:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -537,3 +538,31 @@ def test_a_killed_container_restarts_with_every_component(agent, procs):
     stops = [s for s in watch.states if s.node.startswith("c_") and s.state != "RUNNING"
              and s.previous == "STOPPING"]  # fmt: skip
     assert stops and all(s.state == "STOPPED" for s in stops)
+
+
+@pytest.mark.skipif(not _realtime_allowed(), reason="SCHED_FIFO is refused to this user")
+def test_a_real_time_agent_s_fork_server_is_real_time_and_its_nodes_are_not(procs, bus, tmp_path):
+    """A host agent on SCHED_FIFO (``agents`` in rra.yaml, or chrt) keeps its fork server at
+    its own priority (real-time nodes must not starve the process every start waits on),
+    and what the fork server starts begins as a normal process: a component without
+    ``scheduling`` is not real time because its host agent is."""
+    from rra_agent.host.scheduling import observed
+
+    proc = procs.spawn(
+        ["chrt", "-f", "10", sys.executable, "-m", "rra_agent.host.agent",
+         "--package", str(PACKAGE), "--host", "h1", "--hub", "--log-dir", str(tmp_path / "n"),
+         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500"],
+        name="agent",
+    )  # fmt: skip
+    client = BusClient(bus, SYSTEM)
+    try:
+        watch = Watch(client.session)
+        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
+                   15, "the host agent's token")  # fmt: skip
+        relay = start(client, watch, procs)
+        zygote = next(p for p in children(proc.pid) if "forkserver" in cmdline(p)
+                      and os.readlink(f"/proc/{p}/fd/0").startswith("pipe:"))  # fmt: skip
+        assert observed(zygote).policy == "fifo" and observed(zygote).priority == 10
+        assert observed(relay.pid).policy == "other"
+    finally:
+        client.close()

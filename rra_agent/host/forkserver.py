@@ -303,6 +303,25 @@ def _redirect(log_path: str, fds: list[int]) -> None:
 
 
 # ---- the host agent side ---------------------------------------------------------------------
+def _zygote_setup():
+    """The zygote dies with its host agent and runs with the agent's own scheduling: a
+    real-time host agent (``agents`` in rra.yaml) must not wait on a fork server starved by
+    the real-time nodes it started. The zygote's children start as normal processes
+    (SCHED_RESET_ON_FORK) and take their own scheduling from the model."""
+    from rra_agent.host import scheduling
+
+    own = scheduling.observed(os.getpid())
+    realtime = own.policy != "other" or own.nice != 0
+
+    def setup() -> None:
+        die_with_parent()
+        if realtime:
+            scheduling.apply(msgspec.structs.replace(own, cpus=[]), reset_on_fork=True)
+
+    return setup
+
+
+
 class ForkServer:
     """Handle on a zygote, used by `LocalHost` from the host agent's main thread. The host
     agent reaps the zygote (its child) itself and calls `exited` when it ends."""
@@ -313,7 +332,7 @@ class ForkServer:
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             pass_fds=tuple(pass_fds),
-            preexec_fn=die_with_parent if sys.platform == "linux" else None,
+            preexec_fn=_zygote_setup() if sys.platform == "linux" else None,
         )
         assert self.proc.stdin is not None and self.proc.stdout is not None
         self._in = self.proc.stdin

@@ -306,7 +306,8 @@ def print_phases(breakdown: dict[str, dict[str, list[float]]]) -> None:
     print()
     print("where the time goes: median ms per phase (cross-process trace, RRA_TRACE)")
     rows = []
-    labels = list(dict.fromkeys(label for ph in PHASES.values() for label, _ in ph))
+    middle = [label for ph in PHASES.values() for label, _ in ph if (label, _) not in _SIM]
+    labels = list(dict.fromkeys([*middle, *(label for label, _ in _SIM)]))
     for label in labels:
         if any(label in breakdown[n] for n in names):
             rows.append([label] + [

@@ -7,11 +7,12 @@ of: ``standby`` (the Proploss controller pre-started inactive: switch = activati
 paper's figure, emulated with ``RRA_EMULATED_SWAP_DELAY``). Every run is a real system under
 ``rra up``; the figures come from what was recorded on the bus (`rra_agent.demo`).
 
-Each strategy runs twice: with the real-time scheduling scenarios/quadcopter configures
-(``scheduling`` in system.yaml, ``engines``/``agents`` in rra.yaml) and without it (the
-same package with every ``scheduling`` removed). ``--load`` runs a busy loop on every core
-(``tools/cpuhog.py``) during all runs. Where the kernel refuses real-time scheduling, the
-runs say so and the "scheduled" rows are the same as the others.
+Each strategy runs twice: as scenarios/quadcopter is (no scheduling) and with its critical
+path on real time (``fifo``: a copy with ``scheduling: {policy: fifo, priority: 50}`` on the
+simulator, estimator and both controllers, and ``engines``/``agents`` in rra.yaml).
+``--load`` runs a busy loop on every core (``tools/cpuhog.py``) during all runs. Where the
+kernel refuses real-time scheduling, the runs say so and the "fifo" rows are the same as
+the others.
 
 Prints median and p99 per strategy beside the goals, then where the time goes: the phases
 of one adaptation, from a cross-process trace (`rra_agent.trace`, ``RRA_TRACE``): fault ->
@@ -93,16 +94,21 @@ PHASES = {
 }
 
 
-def unscheduled(package: Path, into: Path) -> Path:
-    """A copy of ``package`` without any ``scheduling`` (components, engines, agents)."""
+#: The real-time variant: the processes on the fault's critical path.
+REALTIME = {"policy": "fifo", "priority": 50}
+CRITICAL = ("estimator", "controller", "proploss_controller", "vehicle_simulator")
+
+
+def realtime(package: Path, into: Path) -> Path:
+    """A copy of ``package`` with its critical path (nodes, engines, agents) on SCHED_FIFO."""
     shutil.copytree(package, into)
     system = yaml.safe_load((into / "system.yaml").read_text())
     for c in system.get("components", []):
-        c.pop("scheduling", None)
+        if c["name"] in CRITICAL:
+            c["scheduling"] = dict(REALTIME)
     (into / "system.yaml").write_text(yaml.safe_dump(system, sort_keys=False))
     manifest = yaml.safe_load((into / "rra.yaml").read_text())
-    manifest.pop("engines", None)
-    manifest.pop("agents", None)
+    manifest["engines"] = manifest["agents"] = {"scheduling": dict(REALTIME)}
     (into / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     return into
 
@@ -223,9 +229,9 @@ def main() -> int:
     ap.add_argument("--load", action="store_true", help="a busy loop on every core meanwhile")
     ap.add_argument(
         "--scheduling",
-        choices=["both", "model", "none"],
+        choices=["both", "fifo", "none"],
         default="both",
-        help="with the package's real-time scheduling, without it, or both (default)",
+        help="the critical path on SCHED_FIFO 50, as the package is, or both (default)",
     )
     args = ap.parse_args()
     hog = None
@@ -235,9 +241,9 @@ def main() -> int:
     rows, traces, breakdown = [], {}, {}
     try:
         with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
-            plain = unscheduled(SCENARIO.parent, Path(tmp) / "unscheduled")
-            variants = {"model": None, "none": plain}
-            chosen = ["model", "none"] if args.scheduling == "both" else [args.scheduling]
+            fifo = realtime(SCENARIO.parent, Path(tmp) / "realtime")
+            variants = {"fifo": fifo, "none": None}
+            chosen = ["fifo", "none"] if args.scheduling == "both" else [args.scheduling]
             for name in args.only or list(STRATEGIES):
                 for variant in chosen:
                     row, tr, ph = run_strategy(name, variants[variant], variant, args, Path(tmp))
@@ -251,7 +257,7 @@ def main() -> int:
     print()
     load = "under a busy loop on every core" if args.load else "quiet machine"
     print(f"fault -> first Proploss command applied by the simulator ({load})")
-    print("scheduling: model = the real-time settings of scenarios/quadcopter, none = removed")
+    print("scheduling: fifo = critical path on SCHED_FIFO 50, none = scenarios/quadcopter as is")
     print_table(
         ["strategy", "scheduling", "runs", "median ms", "p99 ms", "goal ms (median / p99)",
          "alt. lost median m", "alt. lost p99 m", "airborne"],

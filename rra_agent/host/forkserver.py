@@ -321,7 +321,6 @@ def _zygote_setup():
     return setup
 
 
-
 class ForkServer:
     """Handle on a zygote, used by `LocalHost` from the host agent's main thread. The host
     agent reaps the zygote (its child) itself and calls `exited` when it ends."""

@@ -23,7 +23,6 @@ beat, and its host agent probes and restarts the container (with all its compone
 from __future__ import annotations
 
 import contextlib
-import heapq
 import os
 import select
 import signal
@@ -53,16 +52,16 @@ _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
 
 
-class Member(msgspec.Struct, frozen=True):
+class MemberDecl(msgspec.Struct, frozen=True):
     """What a container may load under a name (from its host agent's model)."""
 
     implementations: list[str]
     decl: dict[str, m.ParamDecl] = {}
 
 
-def members_of(spec: m.NodeSpec) -> dict[str, Member]:
+def members_of(spec: m.NodeSpec) -> dict[str, MemberDecl]:
     """The members a container's spec declares (``params["members"]``)."""
-    return msgspec.convert(spec.params.get("members") or {}, dict[str, Member])
+    return msgspec.convert(spec.params.get("members") or {}, dict[str, MemberDecl])
 
 
 @dataclass
@@ -289,7 +288,7 @@ class ContainerRuntime:
                 if entry.next_step < now:  # fell behind: skip, don't burst
                     entry.next_step = now + 1.0 / rate
             nexts.append(entry.next_step)
-        return heapq.nsmallest(1, nexts)[0] if nexts else now + 1.0
+        return min(nexts, default=now + 1.0)
 
     def _reap_stopped(self) -> None:
         """Components that asked to stop (`Shutdown`) are unloaded."""

@@ -576,6 +576,11 @@ def read_spec(path: str | None) -> NodeSpec:
     return msgspec.json.decode(raw, type=NodeSpec)
 
 
+#: The implementation of a component container's process (`rra_agent.host.container`; its
+#: spec is made by the host agent, never taken from the bus).
+CONTAINER = "rra_agent.host.container"
+
+
 def run_node(spec: NodeSpec) -> int:
     """Run a node (Python implementation) until it is told to stop; its exit status.
 
@@ -584,7 +589,7 @@ def run_node(spec: NodeSpec) -> int:
     """
     from rra_agent.bus.config import BusConfig
 
-    if spec.implementation == "rra_agent.host.container":
+    if spec.implementation == CONTAINER:
         from rra_agent.host.container import run_container
 
         return run_container(spec, BusConfig.from_env())

@@ -194,3 +194,25 @@ def test_a_start_takes_the_waiting_spare_and_a_new_spare_is_forked(host: LocalHo
     wait_until(lambda: _our_children() - known, 10, "the next spare")
     # a spare is not a node: the host reaps nothing for it and knows only its nodes
     assert set(host.running()) == {first, second}
+
+
+def test_spares_end_with_their_fork_server(tmp_path, monkeypatch):
+    """With three spares, each must close the others' request pipes: killed with the fork
+    server, every spare sees the end of its pipe and exits (none waits forever)."""
+    monkeypatch.setenv("RRA_SPARE_NODES", "3")
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.host_router(hub=True))
+    h = LocalHost("h", bus, tmp_path)
+    try:
+        before = _our_children()
+        first = h.spawn(spec("t1"))
+        assert h.zygote is not None
+        known = {first, h.zygote.pid, *before}
+        spares = wait_until(lambda: (s := _our_children() - known) and len(s) >= 3 and s, 10,
+                            "three spares")  # fmt: skip
+        os.kill(h.zygote.pid, signal.SIGKILL)
+        wait_until(lambda: not (set(spares) & _our_children()), 10, "the spares' exit")
+        assert pid_alive(first)  # the node it started goes on
+    finally:
+        h.kill_all()
+        hub.close()

@@ -24,6 +24,7 @@ import socket
 import struct
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -56,6 +57,35 @@ def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Sessi
                 raise NoPeer(f"nothing reachable at {', '.join(bus.connect)}")
             time.sleep(0.002)
     return session
+
+
+def control_callback(core: NodeCore, wake: Callable[[], None]):
+    """The Zenoh callback of a node's control endpoint: decode (refusing and counting what is
+    too large or malformed), let the core answer, reply; ``wake`` the main loop when it must
+    re-read the stop flag or ``rate_hz``. A node process and a container use the same."""
+
+    def callback(query: zenoh.Query) -> None:
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        request: m.NodeRequest | None = None
+        if too_large("node_ctl", len(raw)):
+            core.counters.dropped += 1
+            reply: m.Reply = m.Err(message=f"request of {len(raw)} bytes", code="too_large")
+        else:
+            try:
+                request = _CTL.decode(raw)
+            except Exception as e:  # malformed control request: refuse, count, carry on
+                core.counters.dropped += 1
+                reply = m.Err(message=f"malformed request: {e}", code="malformed")
+            else:
+                core.counters.received += 1
+                reply = core.handle(request)
+        query.reply(query.key_expr, _REPLY.encode(reply))
+        if core.stop_requested.is_set() or (
+            isinstance(request, m.SetParams) and "rate_hz" in request.params
+        ):
+            wake()
+
+    return callback
 
 
 class NoPeer(RraError):
@@ -205,28 +235,7 @@ class NodeRuntime:
             signal.set_wakeup_fd(-1)
 
     def _on_query(self, core: NodeCore):
-        def callback(query: zenoh.Query) -> None:
-            raw = query.payload.to_bytes() if query.payload is not None else b""
-            request: m.NodeRequest | None = None
-            if too_large("node_ctl", len(raw)):
-                core.counters.dropped += 1
-                reply: m.Reply = m.Err(message=f"request of {len(raw)} bytes", code="too_large")
-            else:
-                try:
-                    request = _CTL.decode(raw)
-                except Exception as e:  # malformed control request: refuse, count, carry on
-                    core.counters.dropped += 1
-                    reply = m.Err(message=f"malformed request: {e}", code="malformed")
-                else:
-                    core.counters.received += 1
-                    reply = core.handle(request)
-            query.reply(query.key_expr, _REPLY.encode(reply))
-            if core.stop_requested.is_set() or (
-                isinstance(request, m.SetParams) and "rate_hz" in request.params
-            ):
-                self.wake()  # the main loop re-reads the stop flag and rate_hz
-
-        return callback
+        return control_callback(core, self.wake)
 
     def _loop(self, core: NodeCore) -> None:
         rate = core.rate_hz

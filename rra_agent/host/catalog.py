@@ -28,6 +28,7 @@ import msgspec
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import check_chunk
 from rra_agent.models.system import Component, SystemModel, coerce_parameter
+from rra_agent.node import CONTAINER
 
 
 class Refused(Exception):
@@ -83,8 +84,6 @@ class Catalog:
     def container_spec(self, container: str) -> m.NodeSpec:
         """The spec of a container process: what it may load (its members' declared
         implementations and parameters), made here, never taken from the bus."""
-        from rra_agent.host.container import CONTAINER
-
         members = [c for c in self.components.values() if c.container == container]
         scheduling = next((c.scheduling for c in members if not c.scheduling.is_default), None)
         return m.NodeSpec(

@@ -39,16 +39,12 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Counters, too_large
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import ZenohTransport, beat_period, open_session
+from rra_agent.bus.runtime import ZenohTransport, beat_period, control_callback, open_session
 from rra_agent.host.heartbeat import Heartbeat
 from rra_agent.models.system import coerce_parameter
 from rra_agent.node import NodeCore, NodeError, load_node_class
 
-#: The implementation name of a container process (its spec is made by the host agent).
-CONTAINER = "rra_agent.host.container"
-
 _REQ = m.Codec[m.ContainerRequest](m.ContainerRequest)
-_CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
 
 
@@ -211,7 +207,7 @@ class ContainerRuntime:
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys))
             queryable = self.session.declare_queryable(
-                self.keys.node_ctl(spec.name), self._member_query(core)
+                self.keys.node_ctl(spec.name), control_callback(core, self._wake)
             )
             core.start()
         except Exception as e:  # the component does not start; its neighbours go on
@@ -238,23 +234,6 @@ class ContainerRuntime:
             print(f"[{name}] {text}", file=sys.stderr, flush=True)
 
         return log
-
-    def _member_query(self, core: NodeCore):
-        def callback(query: zenoh.Query) -> None:
-            raw = query.payload.to_bytes() if query.payload is not None else b""
-            try:
-                request = _CTL.decode(raw)
-            except Exception as e:  # malformed control request: refuse, count, carry on
-                core.counters.dropped += 1
-                reply: m.Reply = m.Err(message=f"malformed request: {e}", code="malformed")
-            else:
-                core.counters.received += 1
-                reply = core.handle(request)
-            query.reply(query.key_expr, _REPLY.encode(reply))
-            if core.stop_requested.is_set():
-                self._wake()
-
-        return callback
 
     # ---- main loop -----------------------------------------------------------------------
     def _loop(self) -> None:

@@ -9,7 +9,10 @@ zygote) and forks a ready interpreter per node.
 The nodes are not the zygote's children but the host agent's: the zygote forks an
 intermediate process that forks the node and exits at once, so the node is re-parented to
 the host agent, which is a *child subreaper* (``PR_SET_CHILD_SUBREAPER``). Only then does
-the node ask to die with its parent (``PR_SET_PDEATHSIG``), i.e. with the host agent. So:
+the node ask to die with its parent (``PR_SET_PDEATHSIG``), i.e. with the host agent. The
+zygote does this ahead of time: it keeps a *spare* (forked, adopted, waiting on a pipe)
+and hands the next request to it, so a start pays neither the forks nor the adoption; then
+it forks the next spare. A spare sees the end of file when the zygote goes, and exits. So:
 
 - the host agent reaps every node itself and learns of an exit at once (SIGCHLD);
 - the zygote is a helper, nothing more: if it dies (or is killed), the nodes go on, the
@@ -23,7 +26,7 @@ Protocol on the zygote's stdin/stdout, one JSON object per line:
 
 - host -> zygote: ``{"id": n, "spec": <NodeSpec>, "env": {...}, "log": "<path>",
   "argv": [...] | null, "cwd": "<dir>" | null}`` (``argv`` null: a Python node);
-- zygote -> host: ``{"id": n, "started": pid}`` (written by the intermediate process).
+- zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to).
 
 The zygote exits when its stdin closes.
 """
@@ -127,9 +130,9 @@ def serve(host_pid: int, preload: Iterable[str] = ()) -> int:
     spares: list[tuple[int, int]] = []
     buffer = b""
     while True:
-        if len(spares) < SPARES:
-            with contextlib.suppress(OSError):
-                spares.append(_spare([stdin, out], host_pid))
+        with contextlib.suppress(OSError):
+            while len(spares) < SPARES:
+                spares.append(_spare([stdin, out], host_pid, spares))
         select.select([stdin], [], [])
         chunk = os.read(stdin, 65536)
         if not chunk:
@@ -142,33 +145,34 @@ def serve(host_pid: int, preload: Iterable[str] = ()) -> int:
 
 
 def _start(request: dict[str, Any], line: bytes, spares, out: int, fds, host_pid: int) -> None:
-    """Hand the request to a spare (it is a node process already: adopted, warm, waiting),
-    or fork one for it if there is none."""
-    while spares:
+    """Hand the request to a spare (a node process already: adopted, warm, waiting); with
+    none left (or all dead), fork one for it first. Either way it is one kind of process."""
+    while True:
+        if not spares:
+            spares.append(_spare(fds, host_pid, spares))
         pid, pipe = spares.pop(0)
         try:
             os.write(pipe, line + b"\n")
-        except OSError:  # that spare died: try the next
+        except OSError:  # that spare died: take (or make) the next
             continue
         finally:
             os.close(pipe)
-        reply = {"id": request.get("id"), "started": pid}
-        os.write(out, json.dumps(reply).encode() + b"\n")
+        os.write(out, json.dumps({"id": request.get("id"), "started": pid}).encode() + b"\n")
         return
-    _fork(request, out, fds, host_pid)
 
 
-def _spare(fds: list[int], host_pid: int) -> tuple[int, int]:
+def _spare(fds: list[int], host_pid: int, spares: list[tuple[int, int]]) -> tuple[int, int]:
     """Fork a spare node process (through an intermediate, so the host agent adopts it) that
-    waits for its request on a pipe; (its pid, the pipe's write end)."""
+    waits for its request on a pipe; (its pid, the pipe's write end). It closes the other
+    spares' pipes: a spare must see the end of file when the zygote goes."""
     req_r, req_w = os.pipe()
     pid_r, pid_w = os.pipe()
     pid = os.fork()
     if pid == 0:
         status = 0
         try:
-            os.close(req_w)
-            os.close(pid_r)
+            for fd in (req_w, pid_r, *(w for _, w in spares)):
+                os.close(fd)
             node = os.fork()
             if node == 0:
                 os.close(pid_w)
@@ -216,7 +220,7 @@ def _wait_for_request(pipe: int, host_pid: int) -> None:
         request = json.loads(data)
     except BaseException:
         os._exit(EXIT_SETUP)
-    _node(request, [], host_pid, adopted=True)
+    _node(request)
 
 
 def _adopted(host_pid: int) -> bool:
@@ -230,34 +234,13 @@ def _adopted(host_pid: int) -> bool:
     return os.getppid() == host_pid  # the host agent died in between: no
 
 
-def _fork(request: dict[str, Any], out: int, fds: list[int], host_pid: int) -> None:
-    """Fork the intermediate process, which forks the node, reports it and exits."""
-    pid = os.fork()
-    if pid == 0:
-        status = 0
-        try:
-            node = os.fork()
-            if node == 0:
-                _node(request, fds, host_pid)
-            reply = {"id": request.get("id"), "started": node}
-            os.write(out, json.dumps(reply).encode() + b"\n")
-        except BaseException:
-            status = 1
-        finally:
-            os._exit(status)
-    os.waitpid(pid, 0)
-
-
-def _node(request: dict[str, Any], fds: list[int], host_pid: int, adopted: bool = False) -> None:
-    """In the node process: wait for the adoption, then become the node. Never returns."""
+def _node(request: dict[str, Any]) -> None:
+    """In a spare that got its request: become the node. Never returns."""
     code = EXIT_SETUP
     try:
-        trace.mark("node:forked", request["spec"]["name"])
-        if not adopted and not _adopted(host_pid):
-            os._exit(EXIT_SETUP)
-        trace.mark("node:adopted", request["spec"]["name"])
+        trace.mark("node:request", request["spec"]["name"])
         signal.signal(signal.SIGINT, signal.SIG_DFL)
-        _redirect(request["log"], fds)
+        _redirect(request["log"])
         spec = msgspec.convert(request["spec"], NodeSpec)
         _schedule(spec)
         env = request.get("env", {})
@@ -289,15 +272,13 @@ def _schedule(spec: NodeSpec) -> None:
         print(f"rra node {spec.name}: scheduling: {problem}", file=sys.stderr, flush=True)
 
 
-def _redirect(log_path: str, fds: list[int]) -> None:
+def _redirect(log_path: str) -> None:
+    """stdout and stderr to the node's log (stdin is /dev/null since `_detach`)."""
     log = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-    null = os.open(os.devnull, os.O_RDONLY)
-    os.dup2(null, 0)
     os.dup2(log, 1)
     os.dup2(log, 2)
-    for fd in {*fds, log, null} - {0, 1, 2}:  # the zygote's pipes, not our new stdio
-        with contextlib.suppress(OSError):
-            os.close(fd)
+    if log > 2:
+        os.close(log)
     sys.stdout = os.fdopen(1, "w", buffering=1)
     sys.stderr = os.fdopen(2, "w", buffering=1)
 

@@ -566,3 +566,36 @@ def test_a_real_time_agent_s_fork_server_is_real_time_and_its_nodes_are_not(proc
         assert observed(relay.pid).policy == "other"
     finally:
         client.close()
+
+
+def test_a_leader_refused_as_superseded_steps_down(agent, procs):
+    """Two replicas claimed the same epoch at once; the host agent accepted the other's
+    term (equal epoch, smaller name) first. The loser's start is refused ``stale_fence``:
+    its actuator says it was superseded, and its election steps down and tells the engine
+    (the Run-time Resolution Engine then reports ``superseded``, not a failed deployment)."""
+    from rra_agent.bus.loop import MainLoop
+    from rra_agent.engines.actuator import ZenohActuator
+    from rra_agent.engines.election import Election
+    from rra_agent.engines.executor import StepFailed
+
+    _, client, _watch = agent
+    ok(client.host("h1", m.Claim(fence=m.Fence(epoch=1, leader="resolution-a"))))
+    act = ZenohActuator(client.session, K, start_timeout=5.0)
+    act.fence = m.Fence(epoch=1, leader="resolution-b")
+    with pytest.raises(StepFailed, match="stale_fence"):
+        act.start([relay_spec()])
+    assert act.superseded
+    act.close()
+
+    changes: list[bool] = []
+    loop = MainLoop()
+    election = Election(client.session, K, "resolution", "resolution-b", loop,
+                        lambda: changes.append(election.leading), claim_after=30.0)  # fmt: skip
+    try:
+        election.start()
+        assert election.leading and changes == [True]  # alone on the bus: it claims
+        election.claims["resolution-a"] = election.term[0]  # type: ignore[index]  # the winner's claim, seen
+        election.step_down()
+        assert not election.leading and changes == [True, False]
+    finally:
+        election.close()

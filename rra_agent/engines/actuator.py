@@ -77,6 +77,9 @@ class ZenohActuator:
         self.dropped = 0
         #: The leader term put on every request that changes the system (None: not leading).
         self.fence: m.Fence | None = None
+        #: A receiver refused a request as coming from a superseded leader (``stale_fence``):
+        #: another leader has acted; this one must step down, not call its plan a failure.
+        self.superseded = False
         self._pending: list[Any] = []
         self._subs = [
             session.declare_subscriber(keys.events, self._on_event),
@@ -267,6 +270,8 @@ class ZenohActuator:
         ]
         if trace.enabled():
             trace.mark("engine:replied", ",".join(c.label for c in batch))
+        if any(isinstance(r, m.Err) and r.code == "stale_fence" for r in replies):
+            self.superseded = True
         latest: dict[str, m.NodeSpec] = {}
         for c, rep in zip(batch, replies, strict=True):
             if isinstance(rep, m.Ok) and c.after is not None:
@@ -297,6 +302,8 @@ class ZenohActuator:
 
     def _host(self, spec: m.NodeSpec, request: m.HostRequest, what: str) -> Any:
         reply = self.client.host(spec.host, self._fenced(request), self.request_timeout)
+        if isinstance(reply, m.Err) and reply.code == "stale_fence":
+            self.superseded = True
         return self._ok(reply, f"{what} {spec.name} on {spec.host}")
 
     @staticmethod

@@ -157,6 +157,17 @@ class Election:
         elif self.claims.get(replica) == epoch:
             del self.claims[replica]
 
+    def step_down(self) -> None:
+        """A receiver refused this leader's request (another leader acted first): give up
+        the claim and decide again, as after losing to a claim seen on the bus."""
+        if self.term is None:
+            return
+        self._withdraw()
+        self.decide()  # may claim again, above every epoch seen (and say so)
+        if self.term is None:
+            self.changes += 1
+            self.on_change()
+
     def observe_epoch(self, epoch: int) -> None:
         """An epoch seen elsewhere (a receiver's reply, a published state): if it is newer
         than this leader's, this leader is out of date: it claims again above it."""

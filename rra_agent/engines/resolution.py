@@ -290,6 +290,7 @@ class ResolutionEngine(EngineProcess):
     # ---- taking over -------------------------------------------------------------------
     def on_leadership(self, leading: bool) -> None:
         self.actuator.fence = self.fence if leading else None
+        self.actuator.superseded = False
         if not leading:
             return
         fence = self.fence
@@ -719,6 +720,13 @@ class ResolutionEngine(EngineProcess):
         plan: Outcome | None = None,
         durations: dict[str, float] | None = None,
     ) -> None:
+        if outcome in ("failed", "rolled_back") and self.actuator.superseded:
+            # Not a failure of the plan: another leader acted first (both claimed at once).
+            self.actuator.superseded = False
+            kind, level, outcome = "superseded", "warning", ""
+            text = f"{self.name} steps down: another leader has acted ({text})"
+            if self.election is not None:
+                self.loop.post(self.election.step_down)
         self.seq += 1
         event = m.AdaptationEvent(
             stamp=time.time(),

@@ -160,6 +160,21 @@ def make_case(strategy: str, package: Path | None = None):
     )
 
 
+class RunFailed(Exception):
+    """A run that produced no recording (e.g. no deployment came); its folder is kept."""
+
+
+def keep(run_dir: Path, into: Path | None, why: str) -> None:
+    """Copy a failing run's folder (trace, logs, events, recording) to ``into`` for study."""
+    if into is None:
+        return
+    dest = into / run_dir.name
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(run_dir, dest, dirs_exist_ok=True)
+    (dest / "WHY").write_text(why + "\n")
+    print(f"    kept {dest} ({why})", flush=True)
+
+
 def one_run(case, delay: float, run_dir: Path):
     """One run: its report, its recording and its phases (seconds)."""
     run_dir.mkdir(parents=True)
@@ -172,7 +187,7 @@ def one_run(case, delay: float, run_dir: Path):
         os.environ.pop("RRA_EMULATED_SWAP_DELAY", None)
         os.environ.pop(trace.ENV, None)
     if result.recording is None:
-        raise SystemExit(f"run failed: {result.error}")
+        raise RunFailed(str(result.error))
     report = recovery_report(result.recording, setpoint=2.0)
     strategy = case.replacement.components.get("proploss_controller", "")
     return report, result.recording, phases(trace_file, strategy) if trace_file.exists() else {}
@@ -233,6 +248,12 @@ def main() -> int:
         default="both",
         help="the critical path on SCHED_FIFO 50, as the package is, or both (default)",
     )
+    ap.add_argument(
+        "--keep",
+        default="recovery-failures",
+        help="folder where the run folders of failed or crashed runs are copied "
+        "(trace, logs, events; default recovery-failures/, '' to keep none)",
+    )
     args = ap.parse_args()
     hog = None
     if args.load:
@@ -275,8 +296,17 @@ def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path)
     case = make_case(strategy, package)
     latencies, losses, survived, per_phase = [], [], 0, {}
     trace_xy = None
+    kept = Path(args.keep) if args.keep else None
     for i in range(args.runs):
-        report, rec, ph = one_run(case, delay, tmp / f"{name}-{variant}-{i}")
+        run_dir = tmp / f"{name}-{variant}-{i}"
+        try:
+            report, rec, ph = one_run(case, delay, run_dir)
+        except RunFailed as e:
+            print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: FAILED: {e}", flush=True)
+            keep(run_dir, kept, f"failed: {e}")
+            continue
+        if not report.airborne or report.first_proploss_command is None:
+            keep(run_dir, kept, "crashed" if not report.airborne else "no Proploss command")
         if report.first_proploss_command is not None:
             latencies.append(report.first_proploss_command)
         if report.altitude_lost is not None:

@@ -245,7 +245,6 @@ class AdaptationProcess(EngineProcess):
                 for r in (c.winner, c.loser)
             ],
             context=dict(c.context),
-            durations={} if lasted is None else {"conflict": lasted},
         )
 
     def _emit(self, kind: str, text: str, **fields: Any) -> None:

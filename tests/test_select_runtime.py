@@ -14,6 +14,7 @@ from conftest import package_copy, run_rra
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import NoReply, wait_until
+from rra_agent.bus.config import free_port
 
 SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 
@@ -96,6 +97,13 @@ def test_refused_overrides_are_one_line_errors(system, bus):
         out.stderr
     )
     assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_no_bus_at_the_endpoint_is_one_line() -> None:
+    out = run_rra("select", "--system", "relay_system", "--connect", f"tcp/127.0.0.1:{free_port()}")
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    (line,) = out.stderr.strip().splitlines()
+    assert line.startswith("rra select: ") and "tcp/127.0.0.1:" in line
 
 
 def test_a_run_time_conflict_is_reported_once_when_it_starts_and_once_when_it_ends(

@@ -363,7 +363,9 @@ class AdaptationProcess(EngineProcess):
             "seq": self.seq,
             "resumed": self.resumed,
             "forced": _choices(self.engine.forced),
-            "conflicts": [c.describe() for c in self.conflicts.current],
+            "conflicts": [
+                msgspec.to_builtins(_report(c, c.since, None)) for c in self.conflicts.current
+            ],
         }
 
     def extra_counters(self) -> dict[str, int]:

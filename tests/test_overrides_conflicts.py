@@ -142,3 +142,19 @@ def test_a_tracker_adopting_the_leaders_set_does_not_announce_it_again(small):
     assert standby.update(r.active, 0.5, {}) == ([], [])
     _, ended = standby.update([], 1.0, {})
     assert [(c.id, d) for c, d in ended] == [(started[0].id, 1.0)]
+
+
+# ---- scenarios: conflict(t) is a conflict that starts ----------------------------------------
+def test_a_scenario_counts_a_conflict_when_it_starts_not_when_it_ends() -> None:
+    from rra_agent.bus import messages as m
+    from rra_agent.scenario import expectations as x
+    from tests.test_scenario_model import T0, recording
+
+    def report(t: float, state: str) -> m.ConflictReport:
+        return m.ConflictReport(
+            stamp=T0 + t, target="X", rules=["r1", "r2"], resolution="", state=state
+        )
+
+    rec = recording(selections=[report(2.0, "started"), report(5.0, "ended")])
+    occurrences = [(o.t, o.kind) for o in x.Index(rec).occurrences if o.kind == "conflict"]
+    assert occurrences == [(2.0, "conflict")]

@@ -588,3 +588,21 @@ def test_components_in_containers_are_refused_with_certs(tmp_path):
     args = argparse.Namespace(certs=str(tmp_path / "certs"))
     with pytest.raises(RraError, match=r"--certs: direct run in component containers"):
         security(args, deploy(pkg), "local")
+
+
+def test_operators_may_force_features_and_nodes_may_not(
+    router: Router, certs: Path, sessions: Sessions
+) -> None:
+    """``rra select`` asks the Adaptation Engine (``engine/adaptation/ctl``): an operator
+    certificate may, a node's may not (the ACL's ``engine/**`` control rule)."""
+    acl = access_control(deploy(PKG), HOST)
+    control = next(r for r in acl["rules"] if r["id"] == "operator/control")
+    assert f"{KEYS.prefix}/engine/**" in control["key_exprs"]
+    replica = sessions(_engine(certs, router.endpoint))
+    replica.declare_queryable(
+        KEYS.engine_ctl("adaptation"), lambda q: q.reply(q.key_expr, "adaptation")
+    )
+    operator = sessions(_operator(certs, router.endpoint))
+    assert _answered(operator, KEYS.engine_ctl("adaptation")) == ["adaptation"]
+    source = sessions(_node(certs, router.endpoint, "source"))
+    assert _answers(source, KEYS.engine_ctl("adaptation")) == []

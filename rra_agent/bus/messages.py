@@ -14,7 +14,7 @@ Channels and their unions:
 - ``state/<role>``      `StateMessage`    = EngineState
 - ``node/<n>/ctl``      `NodeRequest` -> `Reply`
 - ``host/<h>/ctl``      `HostRequest` -> `Reply`
-- ``engine/<e>/ctl``    `EngineRequest` -> `Reply`
+- ``engine/<e>/ctl``    `EngineRequest` -> `Reply` (``ForceFeatures``: the Adaptation Engine's)
 - ``inject/**``         `Injection`
 
 Requests that change the running system carry a `Fence`: the epoch and name of the engine
@@ -76,6 +76,33 @@ class FiredRule(Msg, tag="fired"):
     reads: dict[str, float] = {}
 
 
+class ConflictReport(Msg, tag="conflict"):
+    """A run-time conflict: two rules (outside one rule set) whose latest wishes on one
+    target differ. Published on ``selection`` once when it starts (``state: started``) and
+    once when it ends (``ended``, with its ``duration``); the conflicts in force are also in
+    every `Selection` (``conflicts``), so a late subscriber learns the current set."""
+
+    stamp: float
+    target: str
+    #: The rule that applies (written later) first, then the one overruled.
+    rules: list[str]
+    resolution: str
+    state: Literal["started", "ended"] = "started"
+    #: ``kind:target:winner|loser``: the same conflict has the same id when it ends.
+    id: str = ""
+    kind: str = ""
+    #: What each rule wants (``on``/``off``, an alternative, a CV value), by rule.
+    wants: dict[str, str] = {}
+    #: The actions as written, and where (``file:line:col``), by rule.
+    actions: dict[str, str] = {}
+    where: dict[str, str] = {}
+    #: When it started, and the measurement values the two rules read then.
+    since: float = 0.0
+    context: dict[str, float | int | bool | str] = {}
+    #: Seconds it lasted (``ended`` only).
+    duration: float | None = None
+
+
 class Selection(Msg, tag="selection"):
     seq: int
     stamp: float
@@ -89,13 +116,10 @@ class Selection(Msg, tag="selection"):
     #: The Adaptation Engine leader that decided it (a selection from an older leader, or
     #: from nobody, is refused by the Run-time Resolution Engine).
     fence: Fence | None = None
-
-
-class ConflictReport(Msg, tag="conflict"):
-    stamp: float
-    target: str
-    rules: list[str]
-    resolution: str
+    #: Run-time features an operator forced on (true) or off (false) (``rra select``).
+    forced: dict[str, bool] = {}
+    #: The run-time conflicts in force (``state: started``).
+    conflicts: list[ConflictReport] = []
 
 
 SelectionMessage = Selection | ConflictReport
@@ -118,6 +142,8 @@ class AdaptationEvent(Msg, tag="event"):
     #: The engine leader that acted, and the ``seq`` of the selection it acted on.
     fence: Fence | None = None
     selection: int | None = None
+    #: Conflicts: the measurement values that made it.
+    context: dict[str, float | int | bool | str] = {}
 
 
 class NodeState(Msg, tag="node_state"):
@@ -369,7 +395,17 @@ class GetState(Msg, tag="get_state"):
     """The engine's current `EngineState` (a restarted engine resumes from it)."""
 
 
-EngineRequest = Status | Describe | Ping | Stats | SetParam | GetState
+class ForceFeatures(Msg, tag="force_features"):
+    """An operator forces run-time features of the Adaptation Engine (``rra select``):
+    ``on`` or ``off`` until released with ``auto``. The rules cannot change a forced
+    feature; the feature model still holds (a refused choice changes nothing). ``operator``
+    names who asks (for the ``override`` event)."""
+
+    features: dict[str, Literal["on", "off", "auto"]]
+    operator: str = ""
+
+
+EngineRequest = Status | Describe | Ping | Stats | SetParam | GetState | ForceFeatures
 
 
 # ---- engine state -----------------------------------------------------------------------
@@ -392,6 +428,10 @@ class EngineState(Msg, tag="engine_state"):
     selection_fence: Fence | None = None
     running: list[NodeSpec] = []
     standby: list[NodeSpec] = []
+    #: Run-time features forced by operators and the conflicts in force, as the Adaptation
+    #: Engine leader last published them (a restarted Adaptation Engine resumes from them).
+    forced: dict[str, bool] = {}
+    conflicts: list[ConflictReport] = []
 
 
 StateMessage = EngineState

@@ -222,6 +222,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.cli.status:configure_param", p),
         lazy("rra_agent.cli.status:run_param"),
     ),
+    "select": Command(
+        "force run-time features on or off (FEATURE=on|off|auto), or print the forced ones",
+        lambda p: _configure("rra_agent.cli.select:configure", p),
+        lazy("rra_agent.cli.select:run"),
+    ),
     "agent": Command(
         "serve this machine as a host of a system: start and supervise its nodes",
         lambda p: _configure("rra_agent.host.agent:configure", p),

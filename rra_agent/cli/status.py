@@ -143,6 +143,7 @@ def render(status: dict[str, Any], *, wide: bool = False) -> str:
         for node, values in sorted(eng.get("overrides", {}).items()):
             set_ = ", ".join(f"{k}={v!r}" for k, v in sorted(values.items()))
             lines.append(f"operator    {node}: {set_}")
+        lines += adaptation_lines(eng)
         if eng.get("failed"):
             lines.append("last adaptation FAILED (rolled back); see `rra events`")
     else:
@@ -173,6 +174,22 @@ def render(status: dict[str, Any], *, wide: bool = False) -> str:
             row = {"node": name, "host": d["host"], "state": "UNKNOWN", "restarts": 0}
             lines.append(_row(row, d, {}, wide))
     return "\n".join(lines)
+
+
+def adaptation_lines(eng: dict[str, Any]) -> list[str]:
+    """The features operators forced (``rra select``) and the run-time conflicts in force,
+    as the Run-time Resolution Engine holds them (nothing when there are none)."""
+    lines = []
+    forced = eng.get("forced") or {}
+    if forced:
+        lines.append("forced      " + ", ".join(f"{f} {v}" for f, v in sorted(forced.items())))
+    for c in eng.get("conflicts") or []:
+        rules = c.get("rules") or []
+        wants = c.get("wants") or {}
+        who = ", ".join(f"{r} wants {wants.get(r, '?')}" for r in rules)
+        since = time.strftime("%H:%M:%S", time.localtime(c.get("since") or c.get("stamp", 0)))
+        lines.append(f"conflict    {c.get('target')}: {who} (since {since})")
+    return lines
 
 
 def _row(n: dict[str, Any], want: dict[str, Any] | None, st: dict[str, Any], wide: bool) -> str:

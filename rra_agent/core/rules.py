@@ -40,6 +40,7 @@ from typing import Any
 
 import msgspec
 
+from rra_agent.core import overrides
 from rra_agent.core.conflicts import (
     ClaimKey,
     action_claims,
@@ -124,6 +125,9 @@ class ConflictRecord(msgspec.Struct, frozen=True, kw_only=True):
     target: str
     winner: FiredRule
     loser: FiredRule
+    #: What the winner and the loser want (``on``/``off``, an alternative, a CV value);
+    #: filled in for the conflicts in force (`TickResult.active`).
+    values: tuple[str, ...] = ()
 
 
 class TickResult(msgspec.Struct, kw_only=True):
@@ -137,6 +141,9 @@ class TickResult(msgspec.Struct, kw_only=True):
     fired: list[FiredRule] = []
     rejected: list[Rejected] = []
     conflicts: list[ConflictRecord] = []
+    #: The conflicts in force: two units whose latest wishes on one target differ (a unit's
+    #: wish lasts until it runs again), whether or not both fired in this tick.
+    active: list[ConflictRecord] = []
     #: Measurements the rules read that were missing or stale in this tick.
     undefined: list[str] = []
 
@@ -707,6 +714,12 @@ class Engine:
         self._effective = self._clamp_all(self.selection)
         self._unavailable: dict[str, str] = {}
         self.ticks = 0
+        #: Run-time features an operator forced on (True) or off (False): see `force`.
+        self.forced: dict[str, bool] = {}
+        #: The latest wish of each unit on each contested claim (conflicts in force).
+        self._wishes: dict[ClaimKey, dict[int, tuple[str, FiredRule]]] = {}
+        self._held: dict[int, set[ClaimKey]] = {}
+        self._always = [u for u, unit in enumerate(self._units) if unit.always]
 
     @property
     def cv(self) -> dict[str, float]:
@@ -729,6 +742,15 @@ class Engine:
         ]
         self._effective = self._clamp_all(chosen)
 
+    def force(self, choices: Mapping[str, str]) -> frozenset[str]:
+        """Force run-time features ``on`` or ``off`` (``auto`` releases them): from the next
+        tick the rules cannot change them. Returns the selection that tick will reach;
+        raises `OverrideError` (nothing changed) if the feature model does not allow it."""
+        selection, self.forced = overrides.change(
+            self.fm, self.deployment, self.selectable, self.selection, self.forced, choices
+        )
+        return selection
+
     def tick(
         self, now: float, measurements: Mapping[str, Sample], *, changed: Collection[str] = ()
     ) -> TickResult:
@@ -739,6 +761,7 @@ class Engine:
         first = self.ticks == 0
         M, V, timed = self._M, self._V, self._timed
         woken = {u for i in fresh for u in self._slot_units[i]}
+        ran = list(self._always)
         for fn, u in self._plan:
             if u < 0:
                 fn(M, cv_before, out, V)
@@ -746,8 +769,10 @@ class Engine:
                 for r in timed[u]:
                     r.last = now
                 fn(M, cv_before, out, V)
+                ran.append(u)
         self.ticks += 1
         fired, rejected, conflicts, requests, sources = self._collect(out)
+        active = self._in_force(out, fired, ran)
         selection = self._select(requests, sources, fired, rejected)
         self._effective = self._clamp_all(selection)
         changed_any = selection != self.selection or self._effective != cv_before
@@ -761,6 +786,7 @@ class Engine:
             fired=fired,
             rejected=rejected,
             conflicts=conflicts,
+            active=active,
             undefined=undefined,
         )
 
@@ -824,6 +850,43 @@ class Engine:
                 rejected.append(_rejected(info.fired, info.reason))
         return fired, rejected, conflicts, requests, sources
 
+    def _in_force(
+        self, out: list[int], fired: list[FiredRule], ran: list[int]
+    ) -> list[ConflictRecord]:
+        """Update each unit's latest wishes (the units that ran drop theirs, then the fired
+        actions state theirs) and return the conflicts in force, later unit as winner."""
+        wishes, held = self._wishes, self._held
+        for u in ran:
+            for key in held.pop(u, ()):
+                mine = wishes[key]
+                mine.pop(u, None)
+                if not mine:
+                    del wishes[key]
+        for k, f in zip(out, fired, strict=True):
+            info = self._actions[k]
+            for key, value in info.claims:
+                wishes.setdefault(key, {})[info.unit] = (value, f)
+                held.setdefault(info.unit, set()).add(key)
+        active: list[ConflictRecord] = []
+        for key, by_unit in wishes.items():
+            if len(by_unit) < 2:
+                continue
+            units = sorted(by_unit)
+            for i, a in enumerate(units):
+                for b in units[i + 1 :]:
+                    (va, fa), (vb, fb) = by_unit[a], by_unit[b]
+                    if va != vb:
+                        active.append(
+                            ConflictRecord(
+                                kind=_RECORD_KIND[key[0]],
+                                target=target_text(key),
+                                winner=fb,
+                                loser=fa,
+                                values=(_wanted(key, vb, fb), _wanted(key, va, fa)),
+                            )
+                        )
+        return active
+
     @staticmethod
     def _conflict(
         key: ClaimKey,
@@ -862,6 +925,12 @@ class Engine:
         current = self.selection
         live: list[tuple[str, str]] = []
         live_sources: list[int] = []
+        if self.forced:  # newly forced features first: the rules' requests apply on top
+            current = overrides.enforce(self.fm, self.deployment, current, self.forced) or current
+            keep, blocked = overrides.split(requests, self.forced)
+            for i, reason in blocked:
+                rejected.append(_rejected(fired[sources[i]], reason))
+            requests, sources = [requests[i] for i in keep], [sources[i] for i in keep]
         for (kind, f), src in zip(requests, sources, strict=True):
             if kind == "activate" and f not in self.selectable:
                 rejected.append(_rejected(fired[src], self._why_unavailable(f)))
@@ -876,6 +945,8 @@ class Engine:
         selection, refused = apply_requests(self.fm, self.deployment, current, live)
         for i, reason in refused:
             rejected.append(_rejected(fired[live_sources[i]], reason))
+        if self.forced:
+            selection = self._enforce(selection, current, live, live_sources, fired, rejected)
         if self.verify and selection != current:
             problems = check_selection(self.fm, self.deployment | selection)
             if problems:  # pragma: no cover - apply_requests keeps selections valid
@@ -884,6 +955,27 @@ class Engine:
                     rejected.append(_rejected(fired[src], f"invalid selection: {reason}"))
                 return current
         return selection
+
+    def _enforce(
+        self,
+        selection: frozenset[str],
+        before: frozenset[str],
+        live: list[tuple[str, str]],
+        sources: list[int],
+        fired: list[FiredRule],
+        rejected: list[Rejected],
+    ) -> frozenset[str]:
+        """The forced features back in their state; a request it undoes is reported."""
+        if not self.forced or overrides.holds(selection, self.forced):
+            return selection
+        enforced = overrides.enforce(self.fm, self.deployment, selection, self.forced)
+        result = before if enforced is None else enforced
+        forced = ", ".join(f for f, on in sorted(self.forced.items()) if on)
+        for (kind, f), src in zip(live, sources, strict=True):
+            if (f in result) != (kind == "activate"):
+                reason = f"cannot {kind} {f}: it would change an operator's forced feature"
+                rejected.append(_rejected(fired[src], reason + (f" ({forced})" if forced else "")))
+        return result
 
     def _reduce(
         self, live: list[tuple[str, str]], sources: list[int], current: frozenset[str]
@@ -1053,6 +1145,13 @@ def _recent(now: float, stamp: Any, max_age_ms: float) -> bool:
         return (now - stamp) * 1000.0 <= max_age_ms
     except TypeError:  # not a time: treat the sample as unusable
         return False
+
+
+def _wanted(key: ClaimKey, value: str, f: FiredRule) -> str:
+    """What a claim wants, for people: on/off, an alternative, or the CV value computed."""
+    if key[0] == "attribute":
+        return "undefined" if f.value is None else f"{f.value:g}"
+    return value
 
 
 def _rejected(report: FiredRule, reason: str) -> Rejected:

@@ -7,7 +7,16 @@ publishes the run-time feature selection and the Continuous Variability values o
 ``rra/<system>/selection``: at once when they change, and as a heartbeat every
 ``heartbeat`` seconds. Each selection names its cause (the rules that fired and the stamps of
 the measurements they read) and carries the fence of the leader that decided it.
-Conflicting actions are published as `ConflictReport`s.
+
+Run-time conflicts (two rules whose latest wishes on one target differ) are adaptation
+events: a `ConflictReport` on ``selection`` and an `AdaptationEvent` of kind ``conflict`` on
+``events`` (the resolution engine writes it to ``events.jsonl``), with a log line, once when
+a conflict starts and once when it ends; every `Selection` carries the conflicts in force.
+
+Operators force run-time features on or off (``rra select``, `ForceFeatures` on
+``engine/adaptation/ctl``): recorded as an ``override`` event, respected by the rules until
+released, and carried in every `Selection` (``forced``), which the Run-time Resolution
+Engine keeps in its state: a restarted Adaptation Engine resumes with them.
 
 It never publishes a default selection over a running system: before it evaluates anything
 it resumes from the system's current selection and CV values, asked from the Run-time
@@ -30,9 +39,12 @@ from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
+from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
+from rra_agent.core.overrides import OverrideError
 from rra_agent.core.rules import Engine, TickResult
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
+from rra_agent.engines.events import EventSink
 from rra_agent.errors import SelectionError
 from rra_agent.viz.rerun_log import Logger, open_logger
 
@@ -74,6 +86,9 @@ class AdaptationProcess(EngineProcess):
         self._floor = 0
         self.publisher: zenoh.Publisher | None = None
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
+        #: The conflicts in force as announced (the leader's; a standby adopts them).
+        self.conflicts = ConflictTracker()
+        self.events: EventSink | None = None
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -112,6 +127,8 @@ class AdaptationProcess(EngineProcess):
         state = self._ask_state()
         if state is not None:
             self._adopt(state.selection, state.cv, "resumed from the system's state")
+            self.engine.forced = dict(state.forced)
+            self.conflicts.adopt(_live(c) for c in state.conflicts)
             if state.selection_fence is not None:
                 self._floor = state.selection_fence.epoch
                 self.seq = state.applied
@@ -173,6 +190,8 @@ class AdaptationProcess(EngineProcess):
             self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
             return
         self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
+        self.engine.forced = dict(msg.forced)
+        self.conflicts.adopt(_live(c) for c in msg.conflicts)
         self.seq = max(self.seq, msg.seq)
 
     # ---- evaluation (main thread) ------------------------------------------------------
@@ -189,20 +208,61 @@ class AdaptationProcess(EngineProcess):
             self.changed = set()
         now = time.time()
         result = self.engine.tick(now, values, changed=changed)
-        if self.leading and (force or result.changed or now - self.last_sent >= self.heartbeat):
+        if not self.leading:
+            return result
+        started: list[LiveConflict] = []
+        ended: list[tuple[LiveConflict, float]] = []
+        if result.active or self.conflicts.known:
+            context = {n: v for n, (v, _) in values.items()}
+            started, ended = self.conflicts.update(result.active, now, context)
+        if force or result.changed or started or ended or now - self.last_sent >= self.heartbeat:
             if result.changed:
                 trace.mark("adaptation:selection", ",".join(sorted(result.selection)))
+            for c, lasted in ended:
+                self._conflict_event(c, now, lasted)
+            for c in started:
+                self._conflict_event(c, now, None)
             self.publish(result, values, now)
-            for c in result.conflicts:
-                self._send(
-                    m.ConflictReport(
-                        stamp=now,
-                        target=c.target,
-                        rules=[c.winner.rule, c.loser.rule],
-                        resolution=f"{c.kind}: {c.winner.rule} wins (written later)",
-                    )
-                )
         return result
+
+    def _conflict_event(self, c: LiveConflict, now: float, lasted: float | None) -> None:
+        """A conflict started (``lasted`` None) or ended: report, event, log line."""
+        report = _report(c, now, lasted)
+        self._send(report)
+        if lasted is None:
+            text = f"conflict started: {c.describe()}"
+        else:
+            text = (
+                f"conflict ended after {lasted:.3f} s: rules {c.winner} and {c.loser} on {c.target}"
+            )
+        print(f"rra {self.name}: {text}", flush=True)
+        self._emit(
+            "conflict",
+            text,
+            level="warning" if lasted is None else "info",
+            cause=[
+                m.FiredRule(rule=r, action=c.actions.get(r, ""), where=c.where.get(r, ""))
+                for r in (c.winner, c.loser)
+            ],
+            context=dict(c.context),
+        )
+
+    def _emit(self, kind: str, text: str, **fields: Any) -> None:
+        """An adaptation event of this engine (the resolution engine logs it)."""
+        if self.events is None:
+            return
+        event = m.AdaptationEvent(
+            stamp=time.time(),
+            kind=kind,
+            message=text,
+            source=self.name,
+            fence=self.fence,
+            selection=self.seq,
+            **fields,
+        )
+        self.events.emit(event)
+        if self.viz:
+            self.viz.event(event)
 
     def publish(self, result: TickResult, values: dict, now: float) -> None:
         self.seq += 1
@@ -226,6 +286,8 @@ class AdaptationProcess(EngineProcess):
                 cause=cause,
                 rejected=[f"{r.rule}: {r.action}: {r.reason}" for r in result.rejected],
                 fence=self.fence,
+                forced=dict(self.engine.forced),
+                conflicts=[_report(c, c.since, None) for c in self.conflicts.current],
             )
         )
         self.last_sent = now
@@ -243,9 +305,36 @@ class AdaptationProcess(EngineProcess):
         if self.publisher is not None:
             self.publisher.put(_SEL.encode(msg))
 
+    # ---- operators' overrides (main thread) --------------------------------------------
+    def serve(self, request: m.EngineRequest) -> m.Reply:
+        match request:
+            case m.ForceFeatures(features=features, operator=who):
+                return self.force(dict(features), who)
+        return super().serve(request)
+
+    def force(self, features: dict[str, str], who: str) -> m.Reply:
+        """Force (or release) run-time features, then evaluate and publish at once."""
+        if not self.leading or not self.resumed:
+            return m.Err(message=f"{self.name} does not lead", code="not_leader")
+        try:
+            self.engine.force(features)
+        except OverrideError as e:
+            self.refuse("override", str(e))
+            return m.Err(message=str(e), code="refused")
+        result = self.evaluate(force=True)
+        forced = self.engine.forced
+        asked = ", ".join(f"{f} {v}" for f, v in sorted(features.items()))
+        now_ = ", ".join(f"{f} {'on' if on else 'off'}" for f, on in sorted(forced.items()))
+        text = f"operator {who or 'unknown'} forced {asked}; forced now: {now_ or 'none'}"
+        print(f"rra {self.name}: {text}", flush=True)
+        self._emit("override", text)
+        selection = sorted(result.selection) if result else sorted(self.engine.selection)
+        return m.Ok(result={"forced": _choices(forced), "selection": selection})
+
     # ---- engine hooks ------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
         self.viz = open_logger(self.name)
+        self.events = EventSink(session, self.keys.events, None)
         self.publisher = session.declare_publisher(
             self.keys.selection,
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -254,6 +343,7 @@ class AdaptationProcess(EngineProcess):
         )
         return [
             self.publisher,
+            self.events.publisher,
             session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
             session.declare_subscriber(self.keys.selection, self._on_selection),
         ]
@@ -272,6 +362,10 @@ class AdaptationProcess(EngineProcess):
             "cv": self.engine.cv,
             "seq": self.seq,
             "resumed": self.resumed,
+            "forced": _choices(self.engine.forced),
+            "conflicts": [
+                msgspec.to_builtins(_report(c, c.since, None)) for c in self.conflicts.current
+            ],
         }
 
     def extra_counters(self) -> dict[str, int]:
@@ -279,8 +373,46 @@ class AdaptationProcess(EngineProcess):
 
     def stopping(self) -> None:
         self.publisher = None
+        self.events = None
         if self.viz:
             self.viz.close()
+
+
+def _report(c: LiveConflict, now: float, lasted: float | None) -> m.ConflictReport:
+    return m.ConflictReport(
+        stamp=now,
+        target=c.target,
+        rules=[c.winner, c.loser],
+        resolution=f"{c.kind}: {c.winner} wins (written later)",
+        state="started" if lasted is None else "ended",
+        id=c.id,
+        kind=c.kind,
+        wants=dict(c.wants),
+        actions=dict(c.actions),
+        where=dict(c.where),
+        since=c.since,
+        context=dict(c.context),
+        duration=lasted,
+    )
+
+
+def _live(r: m.ConflictReport) -> LiveConflict:
+    return LiveConflict(
+        id=r.id,
+        kind=r.kind,
+        target=r.target,
+        winner=r.rules[0] if r.rules else "",
+        loser=r.rules[1] if len(r.rules) > 1 else "",
+        wants=dict(r.wants),
+        actions=dict(r.actions),
+        where=dict(r.where),
+        since=r.since,
+        context=dict(r.context),
+    )
+
+
+def _choices(forced: dict[str, bool]) -> dict[str, str]:
+    return {f: "on" if on else "off" for f, on in sorted(forced.items())}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -100,6 +100,10 @@ class ResolutionEngine(EngineProcess):
         self.selection = default_runtime_selection(fm, dep.selection)
         self.cv: dict[str, float] = dep.initial_cv()
         self.overrides: dict[str, dict[str, ParamValue]] = {}
+        #: Features operators forced and the conflicts in force, as the Adaptation Engine
+        #: leader publishes them with its selections (kept so that it resumes with them).
+        self.forced: dict[str, bool] = {}
+        self.conflicts: list[m.ConflictReport] = []
         self.current = msgspec.structs.replace(dep.configured, components=[], connections=[])
         self.applied = 0
         self.selection_fence: Term | None = None
@@ -247,6 +251,7 @@ class ResolutionEngine(EngineProcess):
         self.mirror = state
         self.selection, self.cv = frozenset(state.selection), dict(state.cv)
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
+        self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
         self.applied = state.applied
         if state.selection_fence is not None:
             self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
@@ -411,12 +416,18 @@ class ResolutionEngine(EngineProcess):
         if checked is None:
             return None
         selection, cv = checked
+        noted = (msg.forced, msg.conflicts) != (self.forced, self.conflicts)
+        self.forced, self.conflicts = dict(msg.forced), list(msg.conflicts)
         if selection == self.selection and cv == self.cv:
             self.applied = msg.seq
+            if noted:
+                self._changed()
             return None  # a heartbeat, or nothing this engine acts on
         key = (selection, tuple(sorted(cv.items())))
         now = time.monotonic()
         if self.failed and self.failed[:2] == key and now - self.failed[2] < self.retry_after:
+            if noted:
+                self._changed()
             return None
         t_recv = time.time()
         t0 = time.perf_counter()
@@ -632,6 +643,8 @@ class ResolutionEngine(EngineProcess):
             selection_fence=m.Fence(epoch=sel[0], leader=sel[1]) if sel else None,
             running=list(self.executor.running.values()),
             standby=list(self.executor.standby.values()),
+            forced=dict(self.forced),
+            conflicts=list(self.conflicts),
         )
 
     def _changed(self) -> None:
@@ -676,6 +689,7 @@ class ResolutionEngine(EngineProcess):
             return
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
+        self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
         self.applied = state.applied
         if state.selection_fence is not None:
             self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
@@ -693,6 +707,8 @@ class ResolutionEngine(EngineProcess):
             "selection": sorted(self.selection),
             "cv": dict(self.cv),
             "overrides": {n: dict(v) for n, v in self.overrides.items()},
+            "forced": {f: "on" if on else "off" for f, on in sorted(self.forced.items())},
+            "conflicts": [msgspec.to_builtins(c) for c in self.conflicts],
             "desired": desired,
             "running": {n: d for n, d in desired.items() if not d["standby"]},
             "standby": sorted(standby),

@@ -767,7 +767,7 @@ class Index:
             if a.ok:
                 self.occurrences.append(Occurrence(a.stamp - t0, "injection", (a.name,)))
         for c in rec.selections:
-            if isinstance(c, m.ConflictReport):
+            if isinstance(c, m.ConflictReport) and c.state == "started":
                 self.occurrences.append(Occurrence(c.stamp - t0, "conflict", (c.target,)))
         self.occurrences.sort(key=lambda o: o.t)
 

@@ -41,6 +41,7 @@ from rra_agent.core.resolution import topic_of
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.errors import RraError
+from rra_agent.models.pkgimport import add_package_path
 from rra_agent.models.system import parse_endpoint
 from rra_agent.node import decode_data
 from rra_agent.viz.rerun_log import Logger, open_logger
@@ -67,11 +68,11 @@ def import_dotted(dotted: str) -> Any:
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
     """Measurement name -> its function: a function of the source data type, or a dotted path.
 
-    The package folder is put on ``sys.path`` so a package may ship its own functions.
+    The package folder is appended to ``sys.path`` (`rra_agent.models.pkgimport`) so a
+    package may ship its own functions.
     """
     pkg = dep.package
-    if str(pkg.root) not in sys.path:
-        sys.path.insert(0, str(pkg.root))
+    add_package_path([pkg.root])
     out = {}
     for meas in pkg.measurements.measurements:
         if meas.function is None:

@@ -174,11 +174,33 @@ def opposing(a: Iterable[Claim], b: Iterable[Claim]) -> ClaimKey | None:
     return None
 
 
+_GROUP_TEXT = "the alternatives of "
+
+
 def target_text(key: ClaimKey) -> str:
     kind, name = key
     if kind == "group":
-        return f"the alternatives of {name.rsplit('#', 1)[0]}"
+        return f"{_GROUP_TEXT}{name.rsplit('#', 1)[0]}"
     return name
+
+
+def target_name(text: str) -> str:
+    """The name a conflict's target is known by: the feature (``Gnss``), the parent of the
+    alternatives (``Localization`` for "the alternatives of Localization"), or the CV
+    attribute ``Feature.Attr``."""
+    return text.removeprefix(_GROUP_TEXT)
+
+
+def conflict_targets(model: AdaptationModel, fm: FeatureModel) -> frozenset[str]:
+    """The `target_name`s the actions of ``model`` claim: all a conflict can be over."""
+    return frozenset(
+        target_name(target_text(key))
+        for rule in model.rules()
+        for branch in rule.branches
+        for action in branch.actions
+        for claims in action_claims(fm, action)
+        for key, _ in claims
+    )
 
 
 # ---- static analysis -----------------------------------------------------------------------

@@ -170,6 +170,9 @@ class MonitorProcess(EngineProcess):
             self.latest[msg.name] = msg
         if not self.leading:
             return  # a hot standby computes everything, publishes nothing
+        self._publish(msg)
+
+    def _publish(self, msg: m.Measurement) -> None:
         trace.mark("monitor:measurement", msg.name)
         self.publishers[msg.name].put(_CTX.encode(msg))
         self.published += 1
@@ -194,10 +197,19 @@ class MonitorProcess(EngineProcess):
             self._host_event(host, alive)
 
     def on_leadership(self, leading: bool) -> None:
-        """A new leader publishes the hosts' reachability it knows: a value its predecessor
-        published may predate what this replica has seen since."""
+        """A new leader publishes what it knows at once: the newest value of each measurement
+        it computed while no replica led (at start-up the sources publish before the
+        election ends; a value computed then would otherwise reach the rules only with the
+        source's next sample, up to a second later for a 1 Hz battery state), and the hosts'
+        reachability (a value its predecessor published may predate what this replica has
+        seen since)."""
         if not leading:
             return
+        reachability = {n for names in self.reachability.values() for n in names}
+        with self.lock:
+            latest = [msg for name, msg in self.latest.items() if name not in reachability]
+        for msg in latest:
+            self._publish(msg)
         for host, alive in self.reachable.items():
             for name in self.reachability[host]:
                 self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))

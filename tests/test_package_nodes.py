@@ -222,3 +222,27 @@ def test_rra_up_runs_the_package_s_own_node_class(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stdout + out.stderr
     assert "1 passed, 0 failed" in out.stderr
     assert "drive     node gnss_receiver RUNNING within 1 s" in out.stdout
+
+
+# ---- the generic nodes' documented ports ------------------------------------------------------
+def test_the_generic_nodes_ports_are_documented_as_they_are_used() -> None:
+    """Each row of docs/models.md's table of generic nodes names a Node class and exactly the
+    ports it publishes on and reads (checked by running it in a NodeHarness)."""
+    import re
+
+    from rra_agent.node import NodeHarness
+
+    text = (ROOT / "docs" / "models.md").read_text()
+    section = text.split("### Generic nodes", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\| `(rra_agent\.nodes\.generic\.\w+)` \| ([^|]+) \|", section, re.M)
+    assert {r[0].rsplit(".", 1)[1] for r in rows} == {"Ticker", "Relay", "Echo"}
+    for impl, ports in rows:
+        documented = dict(re.findall(r"`(\w+)` \((publish|subscribe)\)", ports))
+        ports = {p: (d, "Sample") for p, d in documented.items()}
+        h = NodeHarness(load_node_class(impl), ports=ports, params={"rate_hz": 100.0})
+        if "in" in documented:
+            h.send("in", {"value": 1.0, "seq": 1})
+        else:
+            h.step(0.01)
+        published = {port for port, _ in h.iter_published()}
+        assert published == {p for p, d in documented.items() if d == "publish"}, impl

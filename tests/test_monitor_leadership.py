@@ -8,10 +8,12 @@ publish it, and the value reached the rules only with the source's next sample.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import msgspec
+import pytest
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
@@ -29,7 +31,12 @@ class Publisher:
         self.sent.append(msgspec.msgpack.decode(payload, type=m.CtxMessage))
 
 
-def test_a_measurement_computed_before_leading_is_published_on_taking_the_lead() -> None:
+def test_a_measurement_computed_before_leading_is_published_on_taking_the_lead(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the monitor adds the package folder
+    monkeypatch.setitem(sys.modules, "rover_functions", None)  # and imports its functions
+    monkeypatch.delitem(sys.modules, "rover_functions")
     proc = MonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
     sent: list[m.Measurement] = []
     proc.publishers = {s.m.name: Publisher(sent) for s in proc.core.specs}  # type: ignore[misc]

@@ -23,7 +23,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
@@ -180,10 +180,18 @@ class NodeError(RraError):
     """A control request a node refuses (unknown port or parameter, bad value)."""
 
 
-def load_node_class(path: str) -> type[Node]:
-    """Import ``pkg.module.ClassName`` (or ``pkg.module:ClassName``) and check it is a Node."""
+def load_node_class(path: str, folders: Iterable[str] = ()) -> type[Node]:
+    """Import ``pkg.module.ClassName`` (or ``pkg.module:ClassName``) and check it is a Node.
+
+    ``folders``: the system package's folder(s), appended to ``sys.path``
+    (`rra_agent.models.pkgimport`): a package may ship its own node classes; one of its
+    modules hidden by a module of the same name elsewhere is an error saying so."""
     import importlib
 
+    from rra_agent.models.pkgimport import add_package_path, shadowed_problem
+
+    folders = list(folders)
+    add_package_path(folders)
     mod_name, sep, cls_name = path.replace(":", ".").rpartition(".")
     if not sep:
         raise NodeError(f"implementation {path!r} is not a dotted path 'pkg.module.Class'")
@@ -191,6 +199,9 @@ def load_node_class(path: str) -> type[Node]:
         module = importlib.import_module(mod_name)
     except ImportError as e:
         raise NodeError(f"cannot import {mod_name!r} for implementation {path!r}: {e}") from None
+    hidden = shadowed_problem(module, folders)
+    if hidden is not None:
+        raise NodeError(f"implementation {path!r}: {hidden}")
     cls = getattr(module, cls_name, None)
     if not (isinstance(cls, type) and issubclass(cls, Node)):
         raise NodeError(f"{path!r} is not a subclass of rra_agent.node.Node")
@@ -596,11 +607,8 @@ def run_node(spec: NodeSpec) -> int:
     try:
         if not isinstance(spec.implementation, str):
             raise ValueError("an external-command implementation is run directly, not here")
-        for folder in reversed(spec.path):  # the package's own modules come first
-            if folder not in sys.path:
-                sys.path.insert(0, folder)
         trace.mark("node:import", spec.name)
-        node_cls = load_node_class(spec.implementation)
+        node_cls = load_node_class(spec.implementation, spec.path)
         bus = BusConfig.from_env()
         trace.mark("node:imported", spec.name)
     except (ValueError, RraError) as e:

@@ -43,3 +43,24 @@ def test_planted_conflict_is_reported_at_both_rules(tmp_path):
     assert f"{rules}:{static + 1}:{col_s}: conflict: rules Location and Override" in out.stdout
     assert f"{rules}:{planted + 1}:{col_p}: activate_feature(Dynamic)" in out.stdout
     assert "Traceback" not in out.stderr
+
+
+def test_the_else_branch_of_an_int_condition_of_a_new_robot(tmp_path):
+    """The issue's crash (``OverflowError: cannot convert float infinity to integer``): the
+    rover's rule Localize has an else branch on the int measurement Satellites (< 4, bounded
+    on one side only); a second rule fights it over the choice of localization."""
+    pkg = tmp_path / "rover"
+    shutil.copytree(ROOT / "tests" / "data" / "rover", pkg)
+    rules = pkg / "adaptation.rra"
+    text = (
+        rules.read_text() + "\nrule Recover:\n    if (cdm.Satellites > 10) activate_feature(Gnss)\n"
+    )
+    rules.write_text(text)
+    out = rra("check", str(pkg))
+    assert "Traceback" not in out.stderr and out.returncode == 1, out.stderr
+    line = text.splitlines().index("    else activate_feature(VisualOdometry)") + 1
+    assert out.stdout.startswith(
+        f"{rules}:{line}:10: conflict: rules Localize and Recover can fire in the same tick with"
+        " opposite effects on the alternatives of Localization"
+    )
+    assert "1 conflict(s), 0 possible conflict(s)" in out.stderr

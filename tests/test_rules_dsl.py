@@ -18,6 +18,7 @@ from rra_agent.models.adaptation import (
     AdaptationModel,
     Arith,
     AttrValue,
+    Bool,
     Bound,
     Compare,
     Const,
@@ -304,6 +305,78 @@ def test_quoted_numbers_are_numbers_and_strings_stay_strings(fm, meas):
     )
     assert cmps[1].right == Str(value="50")  # SemLoc is a string measurement
     assert cmps[2].right == Num(value=100.0, quoted=True)
+
+
+BOOL_MEAS = MeasurementsModel(
+    measurements=[
+        Measurement(name="Indoor", type="bool", source="gnss.fix"),
+        Measurement(name="SemLoc", type="str", source="nav.loc"),
+    ]
+)
+
+
+@pytest.mark.parametrize(
+    ("written", "value"),
+    [('"false"', False), ('"true"', True), ("'False'", False), ('"TRUE"', True)],
+)
+def test_quoted_booleans_compare_as_booleans(fm, written, value):
+    """As "50" counts as 50 against a number, "false" counts as false against a bool."""
+    model = parse(
+        IMPORT + f"rule R: if (cdm.Indoor == {written}) activate_feature(Static)", fm, BOOL_MEAS
+    )
+    (cmp,) = [n for n in _nodes(model.items[0].branches[0].condition) if isinstance(n, Compare)]
+    assert cmp.right == Bool(value=value, quoted=True)
+    swapped = parse(
+        IMPORT + f"rule R: if ({written} != cdm.Indoor) activate_feature(Static)", fm, BOOL_MEAS
+    )
+    (cmp,) = [n for n in _nodes(swapped.items[0].branches[0].condition) if isinstance(n, Compare)]
+    assert cmp.left == Bool(value=value, quoted=True)
+
+
+def test_a_quoted_boolean_fires_like_the_keyword(fm):
+    from rra_agent.core.rules import Engine
+
+    for cond in ('cdm.Indoor == "false"', "cdm.Indoor == false"):
+        model = parse(
+            IMPORT + f"rule R: if ({cond}) activate_feature(Dynamic) else activate_feature(Static)",
+            fm,
+            BOOL_MEAS,
+        )
+        engine = Engine(fm, {"Manipulation"}, model)
+        assert "Dynamic" in engine.tick(1.0, {"Indoor": (False, 1.0)}).selection
+        assert "Static" in engine.tick(2.0, {"Indoor": (True, 2.0)}).selection
+
+
+def test_a_string_that_is_no_boolean_against_a_bool_is_a_located_error(fm):
+    text = IMPORT + 'rule R: if (cdm.Indoor == "no") activate_feature(Static)'
+    assert messages(error_of(text, fm, BOOL_MEAS)) == [
+        't.rra:2:27: "no" is not a boolean: measurement Indoor (bool) is true or false'
+        ' (write true, false, "true" or "false")'
+    ]
+
+
+def test_a_quoted_boolean_against_a_string_measurement_stays_a_string(fm):
+    model = parse(
+        IMPORT + 'rule R: if (cdm.SemLoc == "true") activate_feature(Static)', fm, BOOL_MEAS
+    )
+    (cmp,) = [n for n in _nodes(model.items[0].branches[0].condition) if isinstance(n, Compare)]
+    assert cmp.right == Str(value="true")
+
+
+def test_quoted_booleans_of_untyped_measurements_compare_at_run_time(fm):
+    """Without a measurements model the type is known only at run time: a bool value and
+    "true"/"false" compare as booleans, like a number and a numeric string."""
+    from rra_agent.core.rules import Engine
+
+    model = parse(
+        IMPORT + 'rule R: if (cdm.Indoor == "false") activate_feature(Dynamic)'
+        " else activate_feature(Static)",
+        fm,
+        None,
+    )
+    engine = Engine(fm, {"Manipulation"}, model)
+    assert "Dynamic" in engine.tick(1.0, {"Indoor": (False, 1.0)}).selection
+    assert "Static" in engine.tick(2.0, {"Indoor": (True, 2.0)}).selection
 
 
 def test_keywords_are_case_insensitive_and_comments_ignored(fm, meas):

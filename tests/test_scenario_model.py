@@ -621,3 +621,83 @@ def test_a_shared_expectation_is_reported_once_for_all_cases(tmp_path: Path) -> 
     )
     (err,) = errors_of(p)
     assert err.location == located(p, "nope") and "unknown node 'nope'" in err.message
+
+
+# ---- conflict targets and rewired ports are names of the package ------------------------------
+ROVER = Path(__file__).parent / "data" / "rover"
+
+
+def rover_scenario(tmp_path: Path, *expect: str, rules: str = "") -> Path:
+    """A scenario of a copy of tests/data/rover, with ``rules`` added to its adaptation."""
+    import shutil
+
+    pkg = tmp_path / "rover"
+    shutil.copytree(ROVER, pkg, ignore=shutil.ignore_patterns("__pycache__", "*.scenario.yaml"))
+    (pkg / "adaptation.rra").write_text((pkg / "adaptation.rra").read_text() + rules)
+    path = tmp_path / "c.scenario.yaml"
+    lines = "".join(f"  - {e}\n" for e in expect)
+    path.write_text(f"package: {pkg}\nname: c\nduration: 3\nexpect:\n{lines}")
+    return path
+
+
+#: A second rule that fights Localize over the choice of localization (rra check: conflict).
+RECOVER = "\nrule Recover:\n    if (cdm.Satellites > 10) activate_feature(Gnss)\n"
+
+
+def test_a_wrongly_named_conflict_is_a_located_error(tmp_path: Path) -> None:
+    p = rover_scenario(
+        tmp_path,
+        "no conflict(Localisation)",
+        "no conflict(Rover)",
+        "no conflict(MaxSped)",
+        "rewire(drive.inn) within 1 s",
+        rules=RECOVER,
+    )
+    errs = {e.location: e.message for e in errors_of(p)}
+    assert errs == {
+        located(p, "Localisation"): "unknown conflict target 'Localisation' (did you mean"
+        " 'Localization'? known: Driving, Gnss, Localization, MaxSpeed, Rover, VisualOdometry);"
+        " a conflict is over a feature or a CV attribute",
+        located(p, "Rover)"): "no rule claims 'Rover', so no conflict is ever over it (conflict"
+        " targets of adaptation.rra: Driving.MaxSpeed, Gnss, Localization, VisualOdometry)",
+        located(p, "MaxSped"): "unknown conflict target 'MaxSped' (did you mean 'MaxSpeed'? known:"
+        " Driving, Gnss, Localization, MaxSpeed, Rover, VisualOdometry); a conflict is over a"
+        " feature or a CV attribute",
+        located(p, "inn"): "unknown port 'inn' of 'drive' (did you mean 'in'? known: in, out)",
+    }
+
+
+def test_a_conflict_named_by_its_feature_or_attribute_matches_the_reports(tmp_path: Path) -> None:
+    """``conflict(Localization)`` is the conflict over the choice among Localization's
+    alternatives (reported as "the alternatives of Localization"); ``conflict(MaxSpeed)``
+    the one over the CV attribute Driving.MaxSpeed."""
+    p = rover_scenario(
+        tmp_path,
+        "conflict(Localization) within 1 s",
+        "conflict(MaxSpeed) within 1 s",
+        "no conflict(Gnss)",
+        rules=RECOVER,
+    )
+    (case,) = load_scenario(p).cases
+    rec = recording(
+        selections=[
+            m.ConflictReport(stamp=T0 + 0.5, target="the alternatives of Localization",
+                             rules=["Localize", "Recover"], resolution=""),
+            m.ConflictReport(stamp=T0 + 0.7, target="Driving.MaxSpeed",
+                             rules=["SpeedLimit", "Other"], resolution=""),
+        ],
+    )  # fmt: skip
+    outcomes = [x.evaluate(e, x.Index(rec)) for e in case.expectations]
+    assert [o.passed for o in outcomes] == [True, True, True]
+    assert [str(e.event) for e in case.expectations if isinstance(e, x.EventExpectation)] == [
+        "conflict(Localization)",
+        "conflict(Driving.MaxSpeed)",
+        "conflict(Gnss)",
+    ]
+
+
+def test_a_package_without_rules_has_no_conflicts_to_name(tmp_path: Path) -> None:
+    p = rover_scenario(tmp_path, "no conflict(Gnss)")
+    (tmp_path / "rover" / "rra.yaml").write_text("name: rover\nadaptation: null\n")
+    (err,) = errors_of(p)
+    assert err.message == "conflict(Gnss): the package has no adaptation rules"

@@ -174,11 +174,33 @@ def opposing(a: Iterable[Claim], b: Iterable[Claim]) -> ClaimKey | None:
     return None
 
 
+_GROUP_TEXT = "the alternatives of "
+
+
 def target_text(key: ClaimKey) -> str:
     kind, name = key
     if kind == "group":
-        return f"the alternatives of {name.rsplit('#', 1)[0]}"
+        return f"{_GROUP_TEXT}{name.rsplit('#', 1)[0]}"
     return name
+
+
+def target_name(text: str) -> str:
+    """The name a conflict's target is known by: the feature (``Gnss``), the parent of the
+    alternatives (``Localization`` for "the alternatives of Localization"), or the CV
+    attribute ``Feature.Attr``."""
+    return text.removeprefix(_GROUP_TEXT)
+
+
+def conflict_targets(model: AdaptationModel, fm: FeatureModel) -> frozenset[str]:
+    """The `target_name`s the actions of ``model`` claim: all a conflict can be over."""
+    return frozenset(
+        target_name(target_text(key))
+        for rule in model.rules()
+        for branch in rule.branches
+        for action in branch.actions
+        for claims in action_claims(fm, action)
+        for key, _ in claims
+    )
 
 
 # ---- static analysis -----------------------------------------------------------------------
@@ -506,9 +528,16 @@ def _numeric(lits: list[_Lit], *, integer: bool) -> Status:
         elif lit.op in ("<", "<=") and (v < hi or (v == hi and lit.op == "<")):
             hi, hi_open = v, lit.op == "<"
     if integer:
-        lo = math.floor(lo) + 1 if lo_open and lo == math.floor(lo) else math.ceil(lo)
-        hi = math.ceil(hi) - 1 if hi_open and hi == math.ceil(hi) else math.floor(hi)
-        lo_open = hi_open = False
+        # An int is finite: an unbounded side stays unbounded (no rounding of infinity), a
+        # bound at infinity admits no int at all.
+        if lo == math.inf or hi == -math.inf:
+            return "unsat"
+        if math.isfinite(lo):
+            lo = math.floor(lo) + 1 if lo_open and lo == math.floor(lo) else math.ceil(lo)
+            lo_open = False
+        if math.isfinite(hi):
+            hi = math.ceil(hi) - 1 if hi_open and hi == math.ceil(hi) else math.floor(hi)
+            hi_open = False
         if any(not v.is_integer() for v in equal):
             return "unsat"
     if len(equal) > 1:
@@ -519,7 +548,7 @@ def _numeric(lits: list[_Lit], *, integer: bool) -> Status:
         return "sat" if inside and v not in differ else "unsat"
     if lo > hi or (lo == hi and (lo_open or hi_open)):
         return "unsat"
-    if integer and hi - lo < len(differ) + 1:
+    if integer and math.isfinite(lo) and math.isfinite(hi) and hi - lo < len(differ) + 1:
         return (
             "sat" if any(float(k) not in differ for k in range(int(lo), int(hi) + 1)) else "unsat"
         )

@@ -183,10 +183,20 @@ def _truth(x: Any) -> bool | None:
     return x if x is True or x is False else None
 
 
+_BOOL_TEXT = {"true": True, "false": False}
+
+
 def _dyn(op: str, a: Any, b: Any) -> bool | None:
-    """Compare values of statically unknown type: numbers and numeric strings as numbers."""
+    """Compare values of statically unknown type: numbers and numeric strings as numbers,
+    booleans and the strings ``"true"``/``"false"`` (any case) as booleans."""
     if a is None or b is None:
         return None
+    if isinstance(a, bool) and isinstance(b, str):
+        b = _BOOL_TEXT.get(b.strip().lower(), b)
+    elif isinstance(b, bool) and isinstance(a, str):
+        a = _BOOL_TEXT.get(a.strip().lower(), a)
+    if isinstance(a, bool) and isinstance(b, bool):
+        return _COMPARE[op](a, b) if op in ("==", "!=") else None
     if isinstance(a, str) != isinstance(b, str):
         try:
             a, b = _num(a), _num(b)

@@ -705,12 +705,33 @@ class _Resolver:
             left, lt = _as_num(left, lt)
         if rt == "str" and lt in ("num", "any"):
             right, rt = _as_num(right, rt)
+        # Quoted booleans compare as booleans with a bool ("false" is false).
+        if (lt, rt) == ("str", "bool"):
+            left, lt = self._as_bool(left, right)
+        elif (lt, rt) == ("bool", "str"):
+            right, rt = self._as_bool(right, left)
         if "any" not in (lt, rt) and lt != rt:
             self.error(f"cannot compare a {_TY_TEXT[lt]} to a {_TY_TEXT[rt]}", cmp.span)
         elif cmp.op not in ("==", "!=") and "num" not in (lt, rt) and (lt, rt) != ("any", "any"):
             kind = _TY_TEXT[lt if lt != "any" else rt]
             self.error(f"{cmp.op} orders numbers; a {kind} compares only with == and !=", cmp.span)
         return Compare(op=cmp.op, left=left, right=right, span=cmp.span), "bool"
+
+    def _as_bool(self, expr: Expr, other: Expr) -> tuple[Expr, Ty]:
+        """A string literal ``"true"``/``"false"`` (any case) compared with a bool: that
+        bool; another string is a located error."""
+        if isinstance(expr, Str):
+            value = _BOOLS.get(expr.value.strip().lower())
+            if value is not None:
+                return Bool(value=value, span=expr.span, quoted=True), "bool"
+            what = _bool_subject(other)
+            self.error(
+                f'"{expr.value}" is not a boolean: {what} is true or false (write true, false,'
+                ' "true" or "false")',
+                expr.span,
+            )
+            return expr, "bool"
+        return expr, "str"
 
     # names
     def _name(self, name: Name) -> tuple[Expr, Ty]:
@@ -817,6 +838,15 @@ def _value_ty(value: object) -> Ty:
     if isinstance(value, int | float):
         return "num"
     return "str"
+
+
+_BOOLS = {"true": True, "false": False}
+
+
+def _bool_subject(expr: Expr) -> str:
+    if isinstance(expr, Measure):
+        return f"measurement {expr.name} (bool)"
+    return "the other side"
 
 
 def _numeric(expr: Expr) -> Expr:

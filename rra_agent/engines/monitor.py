@@ -41,6 +41,7 @@ from rra_agent.core.resolution import topic_of
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.errors import RraError
+from rra_agent.models.pkgimport import add_package_path
 from rra_agent.models.system import parse_endpoint
 from rra_agent.node import decode_data
 from rra_agent.viz.rerun_log import Logger, open_logger
@@ -67,11 +68,11 @@ def import_dotted(dotted: str) -> Any:
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
     """Measurement name -> its function: a function of the source data type, or a dotted path.
 
-    The package folder is put on ``sys.path`` so a package may ship its own functions.
+    The package folder is appended to ``sys.path`` (`rra_agent.models.pkgimport`) so a
+    package may ship its own functions.
     """
     pkg = dep.package
-    if str(pkg.root) not in sys.path:
-        sys.path.insert(0, str(pkg.root))
+    add_package_path([pkg.root])
     out = {}
     for meas in pkg.measurements.measurements:
         if meas.function is None:
@@ -169,6 +170,9 @@ class MonitorProcess(EngineProcess):
             self.latest[msg.name] = msg
         if not self.leading:
             return  # a hot standby computes everything, publishes nothing
+        self._publish(msg)
+
+    def _publish(self, msg: m.Measurement) -> None:
         trace.mark("monitor:measurement", msg.name)
         self.publishers[msg.name].put(_CTX.encode(msg))
         self.published += 1
@@ -193,10 +197,19 @@ class MonitorProcess(EngineProcess):
             self._host_event(host, alive)
 
     def on_leadership(self, leading: bool) -> None:
-        """A new leader publishes the hosts' reachability it knows: a value its predecessor
-        published may predate what this replica has seen since."""
+        """A new leader publishes what it knows at once: the newest value of each measurement
+        it computed while no replica led (at start-up the sources publish before the
+        election ends; a value computed then would otherwise reach the rules only with the
+        source's next sample, up to a second later for a 1 Hz battery state), and the hosts'
+        reachability (a value its predecessor published may predate what this replica has
+        seen since)."""
         if not leading:
             return
+        reachability = {n for names in self.reachability.values() for n in names}
+        with self.lock:
+            latest = [msg for name, msg in self.latest.items() if name not in reachability]
+        for msg in latest:
+            self._publish(msg)
         for host, alive in self.reachable.items():
             for name in self.reachability[host]:
                 self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))

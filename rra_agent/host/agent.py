@@ -100,9 +100,8 @@ class HostAgent:
         #: What this host may run (from its own copy of the system model).
         self.catalog = catalog
         # The fork server imports every implementation and warms it up (`Node.warm_up`).
-        preload = {i for i in catalog.implementations if "." in i}
         self.local = LocalHost(
-            host, self.bus, log_dir, preload=sorted(preload), prober=self._probe_later
+            host, self.bus, log_dir, preload=catalog.preload, prober=self._probe_later
         )
         self.local.bus_for = self._child_bus
         self.clock = clock

@@ -117,6 +117,12 @@ class Catalog:
             if isinstance(impl, str)
         )
 
+    @property
+    def preload(self) -> list[str]:
+        """What the fork server imports ahead of the nodes: the package folder (appended to
+        the import path) and every Python implementation of this host."""
+        return [*self.path, *sorted(i for i in self.implementations if "." in i)]
+
     def admit(self, spec: m.NodeSpec) -> m.NodeSpec:
         """The spec to run for this request, derived from the model; `Refused` if the model
         does not allow it."""

@@ -195,13 +195,10 @@ class ContainerRuntime:
             return m.Err(message=str(e), code="refused")
         if spec.name in self.loaded:
             return m.Ok(result={"already": True, "pid": os.getpid()})
-        for folder in reversed(spec.path):
-            if folder not in sys.path:
-                sys.path.insert(0, folder)
         assert self.session is not None
         transport = ZenohTransport(self.session)
         try:
-            node_cls = load_node_class(spec.implementation)  # type: ignore[arg-type]
+            node_cls = load_node_class(spec.implementation, spec.path)  # type: ignore[arg-type]
             core = NodeCore(spec, node_cls, transport, logger=self._logger(spec.name),
                             pid=os.getpid())  # fmt: skip
             for name, port in core.ports.items():

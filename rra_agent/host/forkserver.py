@@ -28,6 +28,9 @@ Protocol on the zygote's stdin/stdout, one JSON object per line:
   "argv": [...] | null, "cwd": "<dir>" | null}`` (``argv`` null: a Python node);
 - zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to).
 
+The zygote's arguments are the modules and implementations to preload; an absolute folder
+among them is the system package's folder, appended to the import path before them.
+
 The zygote exits when its stdin closes.
 """
 
@@ -89,15 +92,23 @@ class ForkServerError(OSError):
 # ---- the zygote side ------------------------------------------------------------------------
 def _preload(names: Iterable[str]) -> None:
     """Import modules; for an implementation (``pkg.module.Class``), import it and call its
-    `Node.warm_up`."""
+    `Node.warm_up`. An absolute folder among the names is a system package's folder: it is
+    appended to the import path first (`rra_agent.models.pkgimport`), so the package's own
+    node classes are imported and warmed up here too, and every node forked inherits it."""
+    from rra_agent.models.pkgimport import add_package_path
     from rra_agent.node import load_node_class
 
+    names = list(names)
+    folders = [n for n in names if os.path.isabs(n)]
+    add_package_path(folders)
     for name in names:
+        if name in folders:
+            continue
         with contextlib.suppress(Exception):  # the node's own start reports real problems
             try:
                 importlib.import_module(name)
             except ImportError:
-                load_node_class(name).warm_up()
+                load_node_class(name, folders).warm_up()
 
 
 def _warm_sdk() -> None:

@@ -53,8 +53,11 @@ class Str(Node, frozen=True, tag="str"):
 
 
 class Bool(Node, frozen=True, tag="bool"):
+    """A boolean; ``quoted`` when written as a string (``"false"``) compared with a bool."""
+
     value: bool
     span: Span | None = None
+    quoted: bool = False
 
 
 class Const(Node, frozen=True, tag="const"):

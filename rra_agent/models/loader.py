@@ -83,7 +83,9 @@ def load_package(path: str | Path, *, validate: bool = True) -> SystemPackage:
     """Load every model of the package at ``path``.
 
     Raises the error (or an `ErrorGroup` of all errors) of every file that fails to load;
-    with ``validate`` (the default) then also those of `validate_package`.
+    with ``validate`` (the default) then also those of `validate_package`, except the
+    resolution of implementations (``rra validate`` does that; running a package does not
+    import another host's node classes).
     """
     root = package_root(path)
     errors: list[RraError] = []
@@ -113,7 +115,7 @@ def load_package(path: str | Path, *, validate: bool = True) -> SystemPackage:
     if validate:
         from rra_agent.models.validate import validate_package
 
-        ErrorGroup.raise_if_any(validate_package(pkg))
+        ErrorGroup.raise_if_any(validate_package(pkg, implementations=False))
     return pkg
 
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import os
 import re
+import shutil
 import sys
 from collections.abc import Hashable, Iterable, Iterator
 from pathlib import Path
@@ -19,10 +21,13 @@ from typing import TypeVar
 from rra_agent.errors import ModelError
 from rra_agent.models.loader import SystemPackage
 from rra_agent.models.measurements import PRIMITIVE_TYPES, DataType, Measurement
+from rra_agent.models.pkgimport import add_package_path, shadowed_problem
 from rra_agent.models.resolution import ConnectionRef, ResolutionModel, Transformation
 from rra_agent.models.system import (
+    Command,
     Component,
     Connection,
+    Implementation,
     Parameter,
     Port,
     parse_endpoint,
@@ -35,21 +40,28 @@ _LIST_RE = re.compile(r"^list\[(.+)\]$")
 _BINDING_WORD = {"deployment": "deployment time", "runtime": "run time"}
 
 
-def validate_package(pkg: SystemPackage) -> list[ModelError]:
-    """Every cross-reference problem of ``pkg``, in file order (empty when it is consistent)."""
-    return _Checker(pkg).run()
+def validate_package(pkg: SystemPackage, *, implementations: bool = True) -> list[ModelError]:
+    """Every cross-reference problem of ``pkg``, in file order (empty when it is consistent).
+
+    ``implementations``: also resolve every component implementation (import each node
+    class, look up each external command), as ``rra validate`` does. Loading a package to
+    run it does not: a host imports only the implementations it runs (another host's may
+    need libraries this one does not have), when it starts them."""
+    return _Checker(pkg, implementations=implementations).run()
 
 
 class _Checker:
     """Walks the models of one package, collecting located errors."""
 
-    def __init__(self, pkg: SystemPackage) -> None:
+    def __init__(self, pkg: SystemPackage, *, implementations: bool = True) -> None:
         self.pkg = pkg
+        self.implementations = implementations
         self.fm = pkg.features
         self.components = {c.name: c for c in pkg.system.components}
         self.types = {t.name: t for t in pkg.measurements.data_types}
         self.errors: list[ModelError] = []
         self._callables: dict[str, str | None] = {}
+        self._classes: dict[str, str | None] = {}
 
     def run(self) -> list[ModelError]:
         self.check_manifest()
@@ -58,6 +70,8 @@ class _Checker:
             self.check_resolution(kind)
         self.check_replacement()
         with _on_sys_path(self.pkg.root):
+            if self.implementations:
+                self.check_implementations()
             self.check_measurements()
         return _in_file_order(self.errors)
 
@@ -170,6 +184,31 @@ class _Checker:
                 f"message type mismatch: '{conn.source}' publishes {src.type} but"
                 f" '{conn.target}' expects {dst.type}",
             )
+
+    def check_implementations(self) -> None:
+        """Every implementation resolves, without starting anything: a dotted path imports
+        (with the package folder on the import path, as a node process has it) to a
+        `rra_agent.node.Node` subclass; an external command exists and is executable."""
+        for i, comp in enumerate(self.pkg.system.components):
+            path: tuple[PathItem, ...] = ("components", i)
+            self.check_implementation((*path, "implementation"), comp.implementation)
+            for name, impl in comp.implementations.items():
+                self.check_implementation((*path, "implementations", name), impl)
+
+    def check_implementation(self, path: tuple[PathItem, ...], impl: Implementation) -> None:
+        if isinstance(impl, str):
+            if impl not in self._classes:
+                self._classes[impl] = _node_class_problem(impl, self.pkg.root)
+            problem = self._classes[impl]
+            if problem:
+                self.error("system", path, problem)
+            return
+        if not impl.command:
+            self.error("system", (*path, "command"), "an external command needs a program")
+            return
+        problem = _command_problem(impl)
+        if problem:
+            self.error("system", (*path, "command", 0), problem)
 
     # ---- deployment.yaml / runtime.yaml -------------------------------------------------
     def check_resolution(self, kind: str) -> None:
@@ -417,7 +456,7 @@ class _Checker:
 
     def callable_problem(self, dotted: str) -> str | None:
         if dotted not in self._callables:
-            self._callables[dotted] = _callable_problem(dotted)
+            self._callables[dotted] = _callable_problem(dotted, self.pkg.root)
         return self._callables[dotted]
 
 
@@ -458,7 +497,7 @@ def _measurable(field_type: str, measurement_type: str) -> bool:
     return field_type == measurement_type or (field_type, measurement_type) == ("int", "float")
 
 
-def _callable_problem(dotted: str) -> str | None:
+def _callable_problem(dotted: str, root: Path) -> str | None:
     """Why ``dotted`` does not import to a callable (None when it does)."""
     parts = dotted.split(".")
     if len(parts) < 2 or not all(p.isidentifier() for p in parts):
@@ -473,8 +512,66 @@ def _callable_problem(dotted: str) -> str | None:
             return f"importing '{modname}' failed: {e}"
         except (Exception, SystemExit) as e:
             return f"importing '{modname}' failed: {type(e).__name__}: {e}"
+        hidden = shadowed_problem(module, [root])
+        if hidden is not None:
+            return hidden
         return _attribute_problem(module, modname, parts[i:], dotted)
     return f"cannot import '{dotted}': no module named '{parts[0]}'"
+
+
+def _node_class_problem(dotted: str, root: Path) -> str | None:
+    """Why the implementation ``pkg.module.Class`` (or ``pkg.module:Class``) does not import
+    to a `rra_agent.node.Node` subclass (None when it does). Imports the module (its
+    module-level code runs) and instantiates nothing."""
+    from rra_agent.node import Node
+
+    modname, sep, clsname = dotted.replace(":", ".").rpartition(".")
+    if not sep or not all(p.isidentifier() for p in [*modname.split("."), clsname]):
+        return f"implementation '{dotted}' is not a dotted Python path (expected module.Class)"
+    try:
+        module = importlib.import_module(modname)
+    except ModuleNotFoundError as e:
+        if e.name is not None and (modname == e.name or modname.startswith(e.name + ".")):
+            return (
+                f"cannot import '{modname}' for implementation '{dotted}': no module named"
+                f" '{e.name}' (neither installed nor in the package folder)"
+            )
+        return f"importing '{modname}' failed: {e}"
+    except (Exception, SystemExit) as e:
+        return f"importing '{modname}' failed: {type(e).__name__}: {e}"
+    hidden = shadowed_problem(module, [root])
+    if hidden is not None:
+        return hidden
+    cls = getattr(module, clsname, None)
+    if cls is None:
+        known = [
+            n
+            for n, v in vars(module).items()
+            if isinstance(v, type) and issubclass(v, Node) and not n.startswith("_")
+        ]
+        return unknown_name("node class", clsname, known, f" in '{modname}'")
+    if not (isinstance(cls, type) and issubclass(cls, Node)):
+        return f"'{dotted}' is not a subclass of rra_agent.node.Node"
+    return None
+
+
+def _command_problem(impl: Command) -> str | None:
+    """Why an external command's program cannot be run (None when it can): a name is looked
+    up on PATH (the implementation's own ``env`` PATH if it sets one); a path is taken
+    relative to its ``cwd`` (itself relative to the current folder, as the host agent runs
+    it) and must be an executable file."""
+    program = impl.command[0]
+    if "/" not in program:
+        search = impl.env.get("PATH", os.environ.get("PATH", os.defpath))
+        if shutil.which(program, path=search) is None:
+            return f"program '{program}' of the external command is not on PATH"
+        return None
+    file = Path(impl.cwd or ".") / program
+    if not file.exists():
+        return f"program '{program}' of the external command does not exist ({file})"
+    if not file.is_file() or not os.access(file, os.X_OK):
+        return f"program '{program}' of the external command is not an executable file"
+    return None
 
 
 def _attribute_problem(obj: object, owner: str, attrs: list[str], dotted: str) -> str | None:
@@ -488,16 +585,18 @@ def _attribute_problem(obj: object, owner: str, attrs: list[str], dotted: str) -
 
 @contextlib.contextmanager
 def _on_sys_path(root: Path) -> Iterator[None]:
-    """Put the package folder first on sys.path; forget the modules imported from it after."""
+    """Put the package folder on sys.path as a node process has it (last: see
+    `rra_agent.models.pkgimport`); forget it and the modules imported from it after."""
     folder = str(root.resolve())
     before = set(sys.modules)
-    sys.path.insert(0, folder)
-    importlib.invalidate_caches()
+    present = folder in sys.path
+    add_package_path([folder])
     try:
         yield
     finally:
-        with contextlib.suppress(ValueError):
-            sys.path.remove(folder)
+        if not present:
+            with contextlib.suppress(ValueError):
+                sys.path.remove(folder)
         for name in set(sys.modules) - before:
             file = getattr(sys.modules[name], "__file__", None) or ""
             if file.startswith(folder + "/") or file.startswith(folder + "\\"):

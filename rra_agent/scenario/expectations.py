@@ -34,6 +34,7 @@ from typing import Any, Literal
 import msgspec
 
 from rra_agent.bus import messages as m
+from rra_agent.core.conflicts import target_name
 from rra_agent.errors import Location
 
 STATES: tuple[str, ...] = typing.get_args(m.NodeStateName)
@@ -173,7 +174,18 @@ class Quantity:
 class Ref:
     """A name an expectation refers to, and its offset in the text (for located errors)."""
 
-    kind: Literal["feature", "node", "injection", "measurement", "cv", "param", "port", "name"]
+    kind: Literal[
+        "feature",
+        "node",
+        "injection",
+        "measurement",
+        "cv",
+        "param",
+        "port",
+        "name",
+        "conflict",
+        "rewire",
+    ]
     name: str
     offset: int
 
@@ -539,7 +551,10 @@ class _Parser:
                 self.refs.append(Ref("node", node, at))
             port = "*"
             if self.accept("."):
+                port_at = self.peek().offset
                 port = self.name("a port name", star=True)
+                if node != "*" and port != "*":
+                    self.refs.append(Ref("rewire", f"{node}.{port}", port_at))
             args += [node, port]
         elif arity == 0:
             pass
@@ -549,6 +564,7 @@ class _Parser:
                 "deselect": "feature",
                 "injection": "injection",
                 "sample": "measurement",
+                "conflict": "conflict",
             }.get(kind, "node" if kind in _NODE_EVENTS else None)
             args.append(self.name("an argument", ref, star=True))
         elif arity:
@@ -768,7 +784,10 @@ class Index:
                 self.occurrences.append(Occurrence(a.stamp - t0, "injection", (a.name,)))
         for c in rec.selections:
             if isinstance(c, m.ConflictReport) and c.state == "started":
-                self.occurrences.append(Occurrence(c.stamp - t0, "conflict", (c.target,)))
+                # By the name a scenario gives it: conflict(Localization) is a conflict
+                # over Localization or over the choice among its alternatives.
+                target = target_name(c.target)
+                self.occurrences.append(Occurrence(c.stamp - t0, "conflict", (target,)))
         self.occurrences.sort(key=lambda o: o.t)
 
     def _index_events(self, t0: float) -> None:

@@ -30,6 +30,7 @@ import msgspec
 from yaml.nodes import ScalarNode
 
 from rra_agent.bus.keys import check_topic
+from rra_agent.core.conflicts import conflict_targets
 from rra_agent.core.features import complete_deployment, default_runtime_selection
 from rra_agent.core.resolution import peers_of, resolve_deployment, topic_of
 from rra_agent.deployment import Deployment
@@ -480,6 +481,7 @@ class _Loader:
             return None
         before = len(self.errors)
         changes: dict[str, Any] = {}
+        conflicts: dict[str, str] = {}
         for ref in exp.refs:
             rloc = self.text_loc(where, ref.offset)
             match ref.kind:
@@ -500,6 +502,16 @@ class _Loader:
                     known = [ms.name for ms in self.pkg.measurements.measurements]
                     if ref.name not in known:
                         self.err(unknown_name("measurement", ref.name, known), rloc)
+                case "conflict":
+                    target = self.conflict_target(ref.name, rloc)
+                    if target is not None:
+                        conflicts[ref.name] = target
+                case "rewire":
+                    node, _, port = ref.name.partition(".")
+                    comp = self.pkg.system.component(node)
+                    if comp is not None and comp.port(port) is None:
+                        known = [p.name for p in comp.ports]
+                        self.err(unknown_name("port", port, known, f" of '{node}'"), rloc)
                 case _:
                     pass
         if isinstance(exp, x.ValueExpectation):
@@ -508,10 +520,40 @@ class _Loader:
                 changes["quantity"] = q
                 if q.kind == "implementation":
                     changes["value"] = self.implementation(q.name, exp.value)
-        exp = _bind_events(exp, self.pkg.features)
+        exp = _bind_events(exp, self.pkg.features, conflicts)
         if len(self.errors) > before:
             return None
         return dataclasses.replace(exp, **changes) if changes else exp
+
+    def conflict_target(self, name: str, loc: Location) -> str | None:
+        """What ``conflict(name)`` is over: a feature (by name or alias; the parent of an
+        alternative group stands for the choice among its alternatives) or a CV attribute
+        (``MaxVel`` or ``Feature.MaxVel``), one the package's rules claim; None after a
+        located error."""
+        fm = self.pkg.features
+        cvs = {n: owner for n, (owner, a) in fm.attributes.items() if a.kind == "cv"}
+        resolved = fm.resolve_name(name)
+        if resolved is None:
+            owner, _, attr = name.rpartition(".")
+            if attr in cvs and (not owner or fm.resolve_name(owner) == cvs[attr]):
+                resolved = f"{cvs[attr]}.{attr}"
+        if resolved is None:
+            known = [*fm.features, *cvs]
+            msg = unknown_name("conflict target", name, known)
+            self.err(msg + "; a conflict is over a feature or a CV attribute", loc)
+            return None
+        if self.pkg.adaptation is None:
+            self.err(f"conflict({name}): the package has no adaptation rules", loc)
+            return None
+        targets = conflict_targets(self.pkg.adaptation, fm)
+        if resolved not in targets:
+            self.err(
+                f"no rule claims '{name}', so no conflict is ever over it (conflict targets of"
+                f" {self.pkg.manifest.adaptation}: {', '.join(sorted(targets)) or 'none'})",
+                loc,
+            )
+            return None
+        return resolved
 
     def quantity(
         self, q: x.Quantity, where: tuple[PathItem, ...], refs: Iterable[x.Ref]
@@ -597,11 +639,18 @@ class _Loader:
         return loc
 
 
-def _bind_events(exp: x.Expectation, fm: Any) -> x.Expectation:
-    """Feature names inside ``select(F)``/``deselect(F)`` patterns -> canonical names."""
+def _bind_events(
+    exp: x.Expectation, fm: Any, conflicts: Mapping[str, str] | None = None
+) -> x.Expectation:
+    """Feature names inside ``select(F)``/``deselect(F)`` patterns -> canonical names, and
+    ``conflict(T)`` targets -> the names conflict reports carry (``conflicts``)."""
 
     def fix(ev: x.EventPattern | None) -> x.EventPattern | None:
-        if ev is None or ev.kind not in ("select", "deselect") or not ev.args:
+        if ev is None or not ev.args:
+            return ev
+        if ev.kind == "conflict" and conflicts:
+            return x.EventPattern(ev.kind, (conflicts.get(ev.args[0], ev.args[0]),))
+        if ev.kind not in ("select", "deselect"):
             return ev
         name = fm.resolve_name(ev.args[0]) or ev.args[0]
         return x.EventPattern(ev.kind, (name,))

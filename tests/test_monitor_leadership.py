@@ -1,0 +1,54 @@
+"""The Context Monitor's new leader publishes what it computed while no replica led.
+
+The cause of the flaky ``max_velocity`` scenario ("BattLev == 80 within 1 s": the first value
+came at 1.19 s, from the next 1 Hz battery sample): at start-up a source publishes before the
+monitors' election ends; the replica computes the measurement but, not leading yet, does not
+publish it, and the value reached the rules only with the source's next sample.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import msgspec
+import pytest
+
+from rra_agent.bus import messages as m
+from rra_agent.bus.config import BusConfig
+from rra_agent.deployment import deploy
+from rra_agent.engines.monitor import MonitorProcess
+
+ROVER = Path(__file__).parent / "data" / "rover"
+
+
+class Publisher:
+    def __init__(self, sent: list[m.Measurement]) -> None:
+        self.sent = sent
+
+    def put(self, payload: bytes) -> None:
+        self.sent.append(msgspec.msgpack.decode(payload, type=m.CtxMessage))
+
+
+def test_a_measurement_computed_before_leading_is_published_on_taking_the_lead(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the monitor adds the package folder
+    monkeypatch.setitem(sys.modules, "rover_functions", None)  # and imports its functions
+    monkeypatch.delitem(sys.modules, "rover_functions")
+    proc = MonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
+    sent: list[m.Measurement] = []
+    proc.publishers = {s.m.name: Publisher(sent) for s in proc.core.specs}  # type: ignore[misc]
+    fix = {"seq": 1, "satellites": 7, "indoor": False, "speed": 0.5}
+    proc._pending["gnss_receiver.fix"] = (msgspec.msgpack.encode(fix), 1.0)
+    proc._process()  # the receiver's first fix, while the election runs: computed, not sent
+    assert sent == [] and set(proc.latest) == {"Satellites", "Indoor", "Speed"}
+    proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
+    proc.on_leadership(True)
+    assert {(s.name, s.value) for s in sent} == {
+        ("Satellites", 7),
+        ("Indoor", False),
+        ("Speed", 0.5),
+    }
+    assert [s.stamp for s in sent] == [proc.latest[s.name].stamp for s in sent]  # as computed

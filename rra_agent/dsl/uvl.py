@@ -33,6 +33,7 @@ from lark.lexer import PatternStr
 from lark.tree import Meta
 from lark.visitors import Transformer_NonRecursive
 
+from rra_agent.dsl.parser_cache import cached_lark
 from rra_agent.errors import DslSyntaxError, ErrorGroup, Location, RraError, SemanticError
 from rra_agent.models.features import (
     And,
@@ -121,8 +122,16 @@ def _have_interegular() -> bool:
     return True
 
 
+_OPTIONS: dict[str, Any] = {
+    "parser": "lalr",
+    "lexer": "contextual",
+    "propagate_positions": True,
+    "maybe_placeholders": True,
+}
+
+
 def build_parser(*, strict: bool | None = None) -> Lark:
-    """A new UVL parser (`parse_uvl` caches one).
+    """A new UVL parser, built from the grammar (`parse_uvl` uses a cached one).
 
     ``strict`` (lark rejects shift/reduce conflicts and terminal collisions) works together with
     the Indenter postlexer, but lark needs the optional ``interegular`` package for it; by
@@ -131,18 +140,23 @@ def build_parser(*, strict: bool | None = None) -> Lark:
     """
     return Lark(
         _GRAMMAR.read_text(encoding="utf-8"),
-        parser="lalr",
-        lexer="contextual",
         postlex=_UvlIndenter(),
-        propagate_positions=True,
-        maybe_placeholders=True,
         strict=_have_interegular() if strict is None else strict,
+        **_OPTIONS,
     )
 
 
 @cache
 def _parser() -> Lark:
-    return build_parser()
+    """The parser `parse_uvl` uses: built (strictly, when possible) once per grammar version
+    and then loaded from the on-disk cache (`rra_agent.dsl.parser_cache`)."""
+    return cached_lark(
+        "uvl",
+        _GRAMMAR.read_text(encoding="utf-8"),
+        postlex=_UvlIndenter(),
+        strict=_have_interegular(),
+        **_OPTIONS,
+    )
 
 
 # lark's postlexer keeps its state on the one cached instance: one parse at a time.

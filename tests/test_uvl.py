@@ -23,6 +23,7 @@ from rra_agent.dsl.uvl import (
     same_model,
     strip_spans,
     to_uvl,
+    uvl_warnings,
 )
 from rra_agent.errors import (
     DslSyntaxError,
@@ -33,9 +34,13 @@ from rra_agent.errors import (
     SemanticError,
 )
 from rra_agent.models.features import (
+    Aggregate,
     And,
     Attribute,
+    Cardinality,
+    Compare,
     Constraint,
+    ConstraintList,
     Equiv,
     Expr,
     Feature,
@@ -43,9 +48,11 @@ from rra_agent.models.features import (
     Group,
     Implies,
     Not,
+    Num,
     Or,
     Ref,
     Span,
+    Text,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -371,7 +378,7 @@ SYNTAX_CASES = [
     pytest.param(
         "features\n    A $\n",
         (2, 7, "$"),
-        "unexpected character '$', expected one of 'cardinality', '{', end of line",
+        "unexpected character '$', expected one of '.', 'cardinality', '{', end of line",
         id="bad-character",
     ),
     pytest.param(
@@ -486,9 +493,9 @@ def test_inconsistent_dedent_is_located(text: str, line: int, col: int) -> None:
     assert e.expected and e.expected[0] == "indentation to column 1"
 
 
-# ---- unsupported UVL ----------------------------------------------------------------------------
+# ---- the rest of UVL: kept, exported, and warned about where reasoning ignores it -------------
 
-UNSUPPORTED = uvl("""
+FULL_UVL = uvl("""
     namespace N
     include
         Arithmetic.feature-cardinality
@@ -508,33 +515,107 @@ UNSUPPORTED = uvl("""
         sum(Root.price) < 10 | B
         len(name) == 3
         name == 'x'
-        (B | C) & 2 + 3
-        'text'
+        o.Thing => B
+        B => C
 """)
 
 
-def test_unsupported_constructs_are_located_errors() -> None:
-    found = fails(UNSUPPORTED)
+def test_full_uvl_constructs_are_kept_and_round_trip() -> None:
+    fm = parse_uvl(FULL_UVL, FILE)
+    assert fm.includes == ("Arithmetic.feature-cardinality", "Type.*")
+    assert [(i.namespace, i.alias) for i in fm.imports] == [("other.Model", "o")]
+    f = fm.features
+    assert (f["price"].type, f["name"].type, f["B"].type) == ("Integer", "String", None)
+    assert f["B"].cardinality == Cardinality(lower=1, upper=3)
+    c_attr = f["C"].attributes[0]
+    assert c_attr.name == "constraint"
+    assert isinstance(c_attr.value, ConstraintList) and c_attr.value.single
+    nested = f["D"].attributes[0].value
+    assert isinstance(nested, dict) and isinstance(nested["constraints"], ConstraintList)
+    first = fm.constraints[0].expr
+    assert isinstance(first, And) and isinstance(first.right, Compare)
+    assert first.right == Compare(
+        op=">", left=Ref(name="Root.price", span=Span(FILE, 16, 9)), right=Num(value=3)
+    )
+    assert isinstance(fm.constraints[1].expr, Or)
+    assert isinstance(fm.constraints[1].expr.left.left, Aggregate)  # type: ignore[attr-defined]
+    assert fm.constraints[3].expr == Compare(
+        op="==", left=Ref(name="name", span=Span(FILE, 19, 5)), right=Text(value="x")
+    )
+    # only the propositional constraint over this model's features is reasoned with
+    assert [c.span.line for c in fm.boolean_constraints if c.span] == [21]
+    again = parse_uvl(to_uvl(fm), FILE)
+    assert same_model(again, fm)
+
+
+def test_what_reasoning_ignores_is_warned_about_at_its_place() -> None:
+    warnings = uvl_warnings(parse_uvl(FULL_UVL, FILE))
+    expected = [
+        (6, 5, "other.Model", "imported model 'other.Model' is not loaded"),
+        (11, 13, "B cardinality", "feature 'B' has cardinality [1..3]"),
+        (12, 16, "constraint", "constraint attribute of feature 'C' is kept"),
+        (13, 16, "x {constraints", "constraint attribute of feature 'D' is kept"),
+        (16, 5, "B & Root", "constraint uses a comparison"),
+        (17, 5, "sum(", "constraint uses the aggregate function sum"),
+        (18, 5, "len(", "constraint uses the aggregate function len"),
+        (19, 5, "name ==", "constraint uses a string comparison"),
+        (20, 5, "o.Thing", "constraint names 'o.Thing' of an imported model"),
+    ]
+    assert len(warnings) == len(expected), warnings
+    for w, (line, col, token, start) in zip(warnings, expected, strict=True):
+        assert w.location == Location(FILE, line, col), w
+        assert FULL_UVL.split("\n")[line - 1][col - 1 :].startswith(token)
+        assert w.message.startswith(start), w
+        assert str(w).startswith(f"{FILE}:{line}:{col}: warning: ")
+    assert uvl_warnings(load_uvl(OBJECT_STORING)) == []
+    assert uvl_warnings(load_uvl(QUADCOPTER)) == []
+
+
+def test_reasoning_ignores_constraints_it_cannot_evaluate() -> None:
+    """A comparison never blocks a selection; the propositional constraint still does."""
+    from rra_agent.core.features import check_selection
+
+    fm = parse_uvl(FULL_UVL, FILE)
+    assert check_selection(fm, {"Root", "B"}) != []  # B => C
+    assert check_selection(fm, {"Root", "B", "C"}) == []  # Root.price > 3 is not evaluated
+
+
+MISPLACED = uvl("""
+    features
+        Root
+            optional
+                B
+                Integer n
+    constraints
+        (B | n) & 2 + 3
+        'text'
+        n > (B & n)
+        -B > 1
+        B & max(n) > 1
+        sum(n, n, n) > 1
+        len(3) == 1
+""")
+
+
+def test_misplaced_expressions_are_located_errors() -> None:
+    found = fails(MISPLACED)
     assert all(isinstance(e, SemanticError) for e in found)
     expected = [
-        (2, 1, "include", "'include'"),
-        (5, 1, "imports", "'imports'"),
-        (10, 13, "Integer", "'typed feature (Integer)'"),
-        (11, 15, "cardinality", "'feature cardinality'"),
-        (12, 16, "constraint", "'constraint attribute'"),
-        (13, 19, "constraints", "'constraint attribute'"),
-        (14, 13, "String", "'typed feature (String)'"),
-        (16, 9, "Root.price", "'arithmetic/attribute constraint'"),
-        (17, 5, "sum", "'function sum()'"),
-        (18, 5, "len", "'function len()'"),
-        (19, 5, "name ==", "'string constraint'"),
-        (20, 15, "2 + 3", "'arithmetic expression'"),
-        (21, 5, "'text'", "'string constraint'"),
-    ]
-    assert len(found) == len(expected)
-    for e, (line, col, token, construct) in zip(found, expected, strict=True):
-        assert_at(e, UNSUPPORTED, line, col, token)
-        assert e.message == f"UVL construct {construct} is not supported by rra-agent"
+        (7, 15, "2 + 3", "expected a condition (a feature, a comparison, or ! & | => <=>), "
+         "not an arithmetic term"),
+        (8, 5, "'text'", "expected a condition (a feature, a comparison, or ! & | => <=>), "
+         "not a string"),
+        (9, 10, "B & n", "expected a value (a number, a string, a reference or a function), "
+         "not a condition"),
+        (10, 5, "-B", "a minus sign applies to numbers only, not to a condition (write 0 - x)"),
+        (11, 9, "max", "unknown function max() (UVL has sum(), avg(), len(), floor(), ceil())"),
+        (12, 5, "sum", "sum() takes 1 or 2 reference(s), not 3"),
+        (13, 5, "len", "len() takes feature or attribute references, not a number"),
+    ]  # fmt: skip
+    assert len(found) == len(expected), found
+    for e, (line, col, token, message) in zip(found, expected, strict=True):
+        assert_at(e, MISPLACED, line, col, token)
+        assert e.message == message
 
 
 # ---- semantic errors ----------------------------------------------------------------------------

@@ -207,7 +207,7 @@ class _Index:
         )
         self.end = self._subtree_ends(n)
         self.groups, self.group_of, self.child_groups = self._groups(fm, pos)
-        self.constraints = tuple(self._constraint(c.expr, c.span) for c in fm.constraints)
+        self.constraints = tuple(self._constraint(c.expr, c.span) for c in fm.boolean_constraints)
         cons_of: list[list[int]] = [[] for _ in range(n)]
         for k, c in enumerate(self.constraints):
             for r in c.refs:

@@ -75,6 +75,10 @@ def _run_validate(args: argparse.Namespace) -> int:
     if errors:
         print(f"{args.package}: {len(errors)} error(s)", file=sys.stderr)
         return 1
+    from rra_agent.dsl.uvl import uvl_warnings
+
+    for warning in uvl_warnings(pkg.features):  # UVL that the feature reasoning ignores
+        print(warning)
     print(f"{args.package}: ok ({_summary(pkg)})")
     return 0
 

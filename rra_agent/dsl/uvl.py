@@ -1128,7 +1128,9 @@ KEYWORDS = frozenset(
         "sum", "avg", "len", "floor", "ceil",
     }
 )  # fmt: skip
-_PLAIN_PART = re.compile(r"[^\W\d][\w#§%?\\';]*")
+#: A name part written unquoted: what both grammars read as a plain name (the reference's
+#: ID_STRICT); any other part is quoted.
+_PLAIN_PART = re.compile(r"[a-zA-Z][a-zA-Z0-9_#§%?\\'äüöß;]*")
 _QUOTABLE = re.compile(r'[^"\r\n]+')
 _STRING_OK = re.compile(r"[^'\r\n]*")
 

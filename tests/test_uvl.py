@@ -529,7 +529,8 @@ def test_full_uvl_constructs_are_kept_and_round_trip() -> None:
     assert f["B"].cardinality == Cardinality(lower=1, upper=3)
     c_attr = f["C"].attributes[0]
     assert c_attr.name == "constraint"
-    assert isinstance(c_attr.value, ConstraintList) and c_attr.value.single
+    assert isinstance(c_attr.constraints, ConstraintList) and c_attr.constraints.single
+    assert c_attr.value is None
     nested = f["D"].attributes[0].value
     assert isinstance(nested, dict) and isinstance(nested["constraints"], ConstraintList)
     first = fm.constraints[0].expr
@@ -546,6 +547,15 @@ def test_full_uvl_constructs_are_kept_and_round_trip() -> None:
     assert [c.span.line for c in fm.boolean_constraints if c.span] == [21]
     again = parse_uvl(to_uvl(fm), FILE)
     assert same_model(again, fm)
+
+
+def test_models_of_the_whole_language_decode_from_json() -> None:
+    """The model types stay decodable with msgspec (packages ship feature models as JSON)."""
+    import msgspec
+
+    text = FULL_UVL.replace("            D {x {constraints [B, C]}}\n", "")
+    fm = parse_uvl(text, FILE)
+    assert msgspec.json.decode(msgspec.json.encode(fm), type=FeatureModel) == fm
 
 
 def test_what_reasoning_ignores_is_warned_about_at_its_place() -> None:

@@ -143,3 +143,32 @@ def test_validate_imports_neither_zenoh_nor_cryptography(tmp_path: Path) -> None
     env = {**os.environ, "RRA_CACHE_DIR": str(tmp_path), "PYTHONPATH": str(ROOT)}
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+
+
+def test_parsing_pauses_the_cyclic_collector_and_restores_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Full collections during a parse made its time grow faster than the model; the parse
+    runs with the collector off and leaves it as it found it, also after an error."""
+    import gc
+
+    seen: list[bool] = []
+    real = uvl._parse_tree
+
+    def spy(text: str, file: str) -> object:
+        seen.append(gc.isenabled())
+        return real(text, file)
+
+    monkeypatch.setattr(uvl, "_parse_tree", spy)
+    assert gc.isenabled()
+    uvl.parse_uvl("features\n    A\n")
+    with pytest.raises(uvl.RraError):
+        uvl.parse_uvl("features\n    A {\n")
+    assert seen == [False, False]
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        uvl.parse_uvl("features\n    A\n")
+        assert not gc.isenabled()  # left off when it was off
+    finally:
+        gc.enable()

@@ -303,7 +303,9 @@ def norm_model(fm: FeatureModel) -> dict[str, Any]:
     def feature(f: Feature, parent: str | None) -> None:
         card = (f.cardinality.lower, f.cardinality.upper) if f.cardinality else None
         features.append((f.name, f.type, parent, card))
-        attributes[f.name] = tuple((a.name, _norm_value(a.value)) for a in f.attributes)
+        attributes[f.name] = tuple(
+            (a.name, _norm_value(a.constraints or a.value)) for a in f.attributes
+        )
         for g in f.groups:
             bounds = (g.lower or 0, g.upper) if g.kind == "cardinality" else None
             groups.append((f.name, g.kind, bounds, tuple(c.name for c in g.children)))
@@ -486,12 +488,13 @@ def models(draw: st.DrawFn) -> FeatureModel:
         if draw(st.integers(0, 4)) == 0:
             attrs.append(
                 Attribute(
-                    name="constraint", value=ConstraintList(exprs=(draw(conditions),), single=True)
+                    name="constraint",
+                    constraints=ConstraintList(exprs=(draw(conditions),), single=True),
                 )
             )
         if draw(st.integers(0, 6)) == 0:
             exprs = tuple(draw(st.lists(conditions, max_size=2)))
-            attrs.append(Attribute(name="constraints", value=ConstraintList(exprs=exprs)))
+            attrs.append(Attribute(name="constraints", constraints=ConstraintList(exprs=exprs)))
         card = None
         if draw(st.integers(0, 3)) == 0:
             lower = draw(st.integers(0, 3))

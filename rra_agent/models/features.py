@@ -17,7 +17,7 @@ the RRA view (`kind`, `lower`, ...) is derived from them.
 
 The rest of the UVL language is kept as written too, so a community model is read, checked
 and exported back whole: typed features (`Feature.type`), feature cardinalities
-(`Feature.cardinality`), constraint attributes (`ConstraintList` values), ``include`` language
+(`Feature.cardinality`), constraint attributes (`Attribute.constraints`), ``include`` language
 levels and ``imports`` (`FeatureModel.includes`, `FeatureModel.imports`), and constraints beyond
 propositional logic: comparisons, arithmetic, numbers, strings and aggregate functions
 (`Compare`, `Arith`, `Num`, `Text`, `Aggregate`). rra-agent's reasoning uses the propositional
@@ -64,13 +64,14 @@ class Attribute(Model, frozen=True):
     """A UVL attribute. ``value`` is a scalar, a list, a nested mapping, or None (a flag).
 
     A constraint attribute (``constraint E`` / ``constraints [E, ...]``) is an Attribute named
-    ``constraint`` / ``constraints`` whose value is a `ConstraintList`; nested mappings may
-    hold one too.
+    ``constraint`` / ``constraints`` whose `constraints` holds the expressions (``value`` is
+    None); inside a nested mapping the `ConstraintList` is the value of that key.
     """
 
     name: str
-    value: Scalar | list | dict | ConstraintList | None = None
+    value: Scalar | list | dict | None = None
     span: Span | None = None
+    constraints: ConstraintList | None = None
 
     def _get(self, key: str) -> object:
         return self.value.get(key) if isinstance(self.value, dict) else None

@@ -6,8 +6,9 @@ about 8 levels deep whose features have up to 5 children in mandatory, optional,
 or and cardinality groups, a fifth of the features with attributes, some typed features, and
 half as many cross-tree constraints as features (propositional ones, and a tenth with
 comparisons, arithmetic and aggregate functions). For each size the table gives both parsers'
-wall time (the best of ``--repeat`` runs), the time per feature (flat when parsing is linear
-in model size) and the ratio. rra-agent's time is a complete `parse_uvl`: parse, build the
+CPU time (the best of ``--repeat`` runs; CPU rather than wall time, so that other processes on
+the machine do not distort the figures), the time per feature (flat when parsing is linear in
+model size) and the ratio. rra-agent's time is a complete `parse_uvl`: parse, build the
 model and run every semantic check; the reference's is its parse tree only.
 
 Run: ``.venv/bin/python tools/bench_uvl.py [--sizes 1000 10000 20000] [--repeat N]
@@ -99,9 +100,9 @@ def _reference_parse(text: str) -> None:
 def _best(fn: Callable[[str], object], text: str, repeat: int) -> float:
     best = float("inf")
     for _ in range(repeat):
-        start = time.perf_counter()
+        start = time.process_time()
         fn(text)
-        best = min(best, time.perf_counter() - start)
+        best = min(best, time.process_time() - start)
     return best
 
 

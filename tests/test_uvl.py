@@ -590,6 +590,29 @@ def test_reasoning_ignores_constraints_it_cannot_evaluate() -> None:
     assert check_selection(fm, {"Root", "B", "C"}) == []  # Root.price > 3 is not evaluated
 
 
+def test_imported_root_placed_in_the_tree_is_reasoned_about() -> None:
+    """``e.Engine`` (an imported model's root put in the tree) is a feature of this model, so
+    a constraint over it is enforced; one naming a feature inside the imported model is not."""
+    fm = parse_uvl(
+        uvl("""
+            imports
+                sub.Engine as e
+            features
+                Car
+                    optional
+                        e.Engine
+                        Turbo
+            constraints
+                Turbo => e.Engine
+                e.Engine.Big => Turbo
+        """),
+        FILE,
+    )
+    assert [c.span.line for c in fm.boolean_constraints if c.span] == [9]
+    warnings = [w.message for w in uvl_warnings(fm)]
+    assert warnings[-1].startswith("constraint names 'e.Engine.Big' of an imported model")
+
+
 MISPLACED = uvl("""
     features
         Root

@@ -358,8 +358,8 @@ class FeatureModel(Model, frozen=True, dict=True):
 
     @cached_property
     def boolean_constraints(self) -> tuple[Constraint, ...]:
-        """The constraints rra-agent reasons with: propositional ones that name no imported
-        model's features. The others are kept (and exported) but do not restrict selections."""
+        """The constraints rra-agent reasons with: propositional ones that name no feature of
+        an imported model. The others are kept (and exported) but do not restrict selections."""
         return tuple(
             c
             for c in self.constraints
@@ -367,8 +367,11 @@ class FeatureModel(Model, frozen=True, dict=True):
         )
 
     def imported(self, name: str) -> bool:
-        """Whether ``name`` is a reference into an imported model (``prefix.Feature``)."""
-        return any(name.startswith(i.prefix + ".") for i in self.imports)
+        """Whether ``name`` refers into an imported model (``prefix.Feature``) to a feature
+        this model's tree does not hold (an imported root placed in the tree is one of ours)."""
+        return name not in self.features and any(
+            name.startswith(i.prefix + ".") for i in self.imports
+        )
 
     # ---- derived views (computed once) ---------------------------------------------------
     @cached_property

@@ -79,6 +79,19 @@ def test_damaged_cache_file_is_rebuilt_and_replaced(builds: list[str]) -> None:
     assert len(builds) == 2  # the rebuilt file replaced the damaged one
 
 
+def test_cache_file_others_may_write_is_not_loaded(builds: list[str]) -> None:
+    """Unpickling runs code: a cache file writable by other users is rebuilt, not loaded."""
+    cached_lark("t", GRAMMAR, **OPTIONS)
+    (path,) = cache_dir().iterdir()
+    path.chmod(0o666)
+    cached_lark("t", GRAMMAR, **OPTIONS)
+    assert len(builds) == 2
+    (path,) = cache_dir().iterdir()
+    assert path.stat().st_mode & 0o022 == 0  # replaced by a private file
+    cached_lark("t", GRAMMAR, **OPTIONS)
+    assert len(builds) == 2
+
+
 def test_unwritable_cache_still_gives_a_parser(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

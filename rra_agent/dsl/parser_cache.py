@@ -11,7 +11,8 @@ changed grammar therefore gets a new file, and a stale or damaged file is never 
 rebuilt). Files live in ``$RRA_CACHE_DIR``, else ``$XDG_CACHE_HOME/rra-agent``, else
 ``~/.cache/rra-agent``; when none can be written the parser is simply built in memory. Files
 are written to a temporary name and renamed into place, so two processes starting together
-never read a half-written file.
+never read a half-written file. A parser is stored as a pickle, so a file is loaded only when
+this user owns it and no one else may write it.
 """
 
 from __future__ import annotations
@@ -59,9 +60,19 @@ def cache_file(name: str, grammar: str, postlex: object | None, options: dict[st
     return cache_dir() / f"{name}-{_key(grammar, postlex, options)}.lark"
 
 
+def _trusted(fd: int) -> bool:
+    """Whether an open cache file may be unpickled: owned by this user and writable by no one
+    else (a parser is a pickle, and unpickling runs code)."""
+    st = os.fstat(fd)
+    getuid = getattr(os, "getuid", None)
+    return (getuid is None or st.st_uid == getuid()) and not st.st_mode & 0o022
+
+
 def _load(path: Path, postlex: object | None) -> Lark | None:
     try:
         with path.open("rb") as f:
+            if not _trusted(f.fileno()):
+                return None  # rebuilt, and replaced by a file of ours
             inst = Lark.__new__(Lark)
             kwargs = {"postlex": postlex} if postlex is not None else {}
             return inst._load(f, **kwargs)  # lark's own cache loads parsers this way

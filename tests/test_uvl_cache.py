@@ -101,6 +101,16 @@ def test_unwritable_cache_still_gives_a_parser(
     assert cached_lark("t", GRAMMAR, **OPTIONS).parse("x").children == ["x"]
 
 
+def test_no_home_folder_still_gives_a_parser(monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_home() -> Path:
+        raise RuntimeError("Could not determine home directory.")
+
+    for var in ("RRA_CACHE_DIR", "XDG_CACHE_HOME"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    assert cached_lark("t", GRAMMAR, **OPTIONS).parse("x").children == ["x"]
+
+
 def test_cache_folder_follows_xdg(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.delenv("RRA_CACHE_DIR", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))

@@ -107,10 +107,14 @@ def cached_lark(name: str, grammar: str, *, postlex: object | None = None, **opt
     """
     if options.get("parser") != "lalr":
         raise ValueError("only LALR parsers can be cached")
-    path = cache_file(name, grammar, postlex, options)
-    parser = _load(path, postlex)
+    try:
+        path: Path | None = cache_file(name, grammar, postlex, options)
+    except (RuntimeError, OSError, KeyError):  # no home folder to hold the cache
+        path = None
+    parser = _load(path, postlex) if path is not None else None
     if parser is not None:
         return parser
     parser = Lark(grammar, postlex=postlex, **options)
-    _store(path, parser)
+    if path is not None:
+        _store(path, parser)
     return parser

@@ -23,6 +23,7 @@ from rra_agent.dsl.uvl import (
     same_model,
     strip_spans,
     to_uvl,
+    uvl_warnings,
 )
 from rra_agent.errors import (
     DslSyntaxError,
@@ -33,9 +34,13 @@ from rra_agent.errors import (
     SemanticError,
 )
 from rra_agent.models.features import (
+    Aggregate,
     And,
     Attribute,
+    Cardinality,
+    Compare,
     Constraint,
+    ConstraintList,
     Equiv,
     Expr,
     Feature,
@@ -43,9 +48,11 @@ from rra_agent.models.features import (
     Group,
     Implies,
     Not,
+    Num,
     Or,
     Ref,
     Span,
+    Text,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -371,7 +378,7 @@ SYNTAX_CASES = [
     pytest.param(
         "features\n    A $\n",
         (2, 7, "$"),
-        "unexpected character '$', expected one of 'cardinality', '{', end of line",
+        "unexpected character '$', expected one of '.', 'cardinality', '{', end of line",
         id="bad-character",
     ),
     pytest.param(
@@ -486,9 +493,9 @@ def test_inconsistent_dedent_is_located(text: str, line: int, col: int) -> None:
     assert e.expected and e.expected[0] == "indentation to column 1"
 
 
-# ---- unsupported UVL ----------------------------------------------------------------------------
+# ---- the rest of UVL: kept, exported, and warned about where reasoning ignores it -------------
 
-UNSUPPORTED = uvl("""
+FULL_UVL = uvl("""
     namespace N
     include
         Arithmetic.feature-cardinality
@@ -508,33 +515,140 @@ UNSUPPORTED = uvl("""
         sum(Root.price) < 10 | B
         len(name) == 3
         name == 'x'
-        (B | C) & 2 + 3
-        'text'
+        o.Thing => B
+        B => C
 """)
 
 
-def test_unsupported_constructs_are_located_errors() -> None:
-    found = fails(UNSUPPORTED)
+def test_full_uvl_constructs_are_kept_and_round_trip() -> None:
+    fm = parse_uvl(FULL_UVL, FILE)
+    assert fm.includes == ("Arithmetic.feature-cardinality", "Type.*")
+    assert [(i.namespace, i.alias) for i in fm.imports] == [("other.Model", "o")]
+    f = fm.features
+    assert (f["price"].type, f["name"].type, f["B"].type) == ("Integer", "String", None)
+    assert f["B"].cardinality == Cardinality(lower=1, upper=3)
+    c_attr = f["C"].attributes[0]
+    assert c_attr.name == "constraint"
+    assert isinstance(c_attr.constraints, ConstraintList) and c_attr.constraints.single
+    assert c_attr.value is None
+    nested = f["D"].attributes[0].value
+    assert isinstance(nested, dict) and isinstance(nested["constraints"], ConstraintList)
+    first = fm.constraints[0].expr
+    assert isinstance(first, And) and isinstance(first.right, Compare)
+    assert first.right == Compare(
+        op=">", left=Ref(name="Root.price", span=Span(FILE, 16, 9)), right=Num(value=3)
+    )
+    assert isinstance(fm.constraints[1].expr, Or)
+    assert isinstance(fm.constraints[1].expr.left.left, Aggregate)  # type: ignore[attr-defined]
+    assert fm.constraints[3].expr == Compare(
+        op="==", left=Ref(name="name", span=Span(FILE, 19, 5)), right=Text(value="x")
+    )
+    # only the propositional constraint over this model's features is reasoned with
+    assert [c.span.line for c in fm.boolean_constraints if c.span] == [21]
+    again = parse_uvl(to_uvl(fm), FILE)
+    assert same_model(again, fm)
+
+
+def test_models_of_the_whole_language_decode_from_json() -> None:
+    """The model types stay decodable with msgspec (packages ship feature models as JSON)."""
+    import msgspec
+
+    text = FULL_UVL.replace("            D {x {constraints [B, C]}}\n", "")
+    fm = parse_uvl(text, FILE)
+    assert msgspec.json.decode(msgspec.json.encode(fm), type=FeatureModel) == fm
+
+
+def test_what_reasoning_ignores_is_warned_about_at_its_place() -> None:
+    warnings = uvl_warnings(parse_uvl(FULL_UVL, FILE))
+    expected = [
+        (6, 5, "other.Model", "imported model 'other.Model' is not loaded"),
+        (11, 13, "B cardinality", "feature 'B' has cardinality [1..3]"),
+        (12, 16, "constraint", "constraint attribute of feature 'C' is kept"),
+        (13, 16, "x {constraints", "constraint attribute of feature 'D' is kept"),
+        (16, 5, "B & Root", "constraint uses a comparison"),
+        (17, 5, "sum(", "constraint uses the aggregate function sum"),
+        (18, 5, "len(", "constraint uses the aggregate function len"),
+        (19, 5, "name ==", "constraint uses a string comparison"),
+        (20, 5, "o.Thing", "constraint names 'o.Thing' of an imported model"),
+    ]
+    assert len(warnings) == len(expected), warnings
+    for w, (line, col, token, start) in zip(warnings, expected, strict=True):
+        assert w.location == Location(FILE, line, col), w
+        assert FULL_UVL.split("\n")[line - 1][col - 1 :].startswith(token)
+        assert w.message.startswith(start), w
+        assert str(w).startswith(f"{FILE}:{line}:{col}: warning: ")
+    assert uvl_warnings(load_uvl(OBJECT_STORING)) == []
+    assert uvl_warnings(load_uvl(QUADCOPTER)) == []
+
+
+def test_reasoning_ignores_constraints_it_cannot_evaluate() -> None:
+    """A comparison never blocks a selection; the propositional constraint still does."""
+    from rra_agent.core.features import check_selection
+
+    fm = parse_uvl(FULL_UVL, FILE)
+    assert check_selection(fm, {"Root", "B"}) != []  # B => C
+    assert check_selection(fm, {"Root", "B", "C"}) == []  # Root.price > 3 is not evaluated
+
+
+def test_imported_root_placed_in_the_tree_is_reasoned_about() -> None:
+    """``e.Engine`` (an imported model's root put in the tree) is a feature of this model, so
+    a constraint over it is enforced; one naming a feature inside the imported model is not."""
+    fm = parse_uvl(
+        uvl("""
+            imports
+                sub.Engine as e
+            features
+                Car
+                    optional
+                        e.Engine
+                        Turbo
+            constraints
+                Turbo => e.Engine
+                e.Engine.Big => Turbo
+        """),
+        FILE,
+    )
+    assert [c.span.line for c in fm.boolean_constraints if c.span] == [9]
+    warnings = [w.message for w in uvl_warnings(fm)]
+    assert warnings[-1].startswith("constraint names 'e.Engine.Big' of an imported model")
+
+
+MISPLACED = uvl("""
+    features
+        Root
+            optional
+                B
+                Integer n
+    constraints
+        (B | n) & 2 + 3
+        'text'
+        n > (B & n)
+        -B > 1
+        B & max(n) > 1
+        sum(n, n, n) > 1
+        len(3) == 1
+""")
+
+
+def test_misplaced_expressions_are_located_errors() -> None:
+    found = fails(MISPLACED)
     assert all(isinstance(e, SemanticError) for e in found)
     expected = [
-        (2, 1, "include", "'include'"),
-        (5, 1, "imports", "'imports'"),
-        (10, 13, "Integer", "'typed feature (Integer)'"),
-        (11, 15, "cardinality", "'feature cardinality'"),
-        (12, 16, "constraint", "'constraint attribute'"),
-        (13, 19, "constraints", "'constraint attribute'"),
-        (14, 13, "String", "'typed feature (String)'"),
-        (16, 9, "Root.price", "'arithmetic/attribute constraint'"),
-        (17, 5, "sum", "'function sum()'"),
-        (18, 5, "len", "'function len()'"),
-        (19, 5, "name ==", "'string constraint'"),
-        (20, 15, "2 + 3", "'arithmetic expression'"),
-        (21, 5, "'text'", "'string constraint'"),
-    ]
-    assert len(found) == len(expected)
-    for e, (line, col, token, construct) in zip(found, expected, strict=True):
-        assert_at(e, UNSUPPORTED, line, col, token)
-        assert e.message == f"UVL construct {construct} is not supported by rra-agent"
+        (7, 15, "2 + 3", "expected a condition (a feature, a comparison, or ! & | => <=>), "
+         "not an arithmetic term"),
+        (8, 5, "'text'", "expected a condition (a feature, a comparison, or ! & | => <=>), "
+         "not a string"),
+        (9, 10, "B & n", "expected a value (a number, a string, a reference or a function), "
+         "not a condition"),
+        (10, 5, "-B", "a minus sign applies to numbers only, not to a condition (write 0 - x)"),
+        (11, 9, "max", "unknown function max() (UVL has sum(), avg(), len(), floor(), ceil())"),
+        (12, 5, "sum", "sum() takes 1 or 2 reference(s), not 3"),
+        (13, 5, "len", "len() takes feature or attribute references, not a number"),
+    ]  # fmt: skip
+    assert len(found) == len(expected), found
+    for e, (line, col, token, message) in zip(found, expected, strict=True):
+        assert_at(e, MISPLACED, line, col, token)
+        assert e.message == message
 
 
 # ---- semantic errors ----------------------------------------------------------------------------
@@ -991,7 +1105,9 @@ def test_keywords_and_odd_names_are_quoted() -> None:
         source=FILE,
     )
     text = to_uvl(fm)
-    assert '"or"' in text and '"1st"' in text and "    ünï\n" in text and "a.b.c\n" in text
+    assert '"or"' in text and '"1st"' in text and "a.b.c\n" in text
+    # plain only where the reference grammar reads a plain name too (ASCII letter first)
+    assert '    "ünï"\n' in text and '    "_x"\n' in text
     assert same_model(parse_uvl(text, FILE), fm)
 
 
@@ -1213,3 +1329,26 @@ def mutated_example(draw: st.DrawFn) -> str:
 @given(mutated_example())
 def test_mutated_example_parses_or_raises_rra_error(text: str) -> None:
     parses_or_fails_cleanly(text)
+
+
+def test_rra_validate_prints_the_warnings(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A package whose UVL uses what the reasoning ignores validates, with located warnings."""
+    import shutil
+
+    from rra_agent.cli.commands import main
+
+    pkg = tmp_path / "pkg"
+    shutil.copytree(ROOT / "scenarios/base_station", pkg)
+    uvl_file = pkg / "features.uvl"
+    text = uvl_file.read_text(encoding="utf-8").replace(
+        "RemotePlanning {default}", "RemotePlanning {default, latency 5}"
+    )
+    uvl_file.write_text(text + "\nconstraints\n    RemotePlanning.latency < 10\n")
+    assert main(["validate", str(pkg)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    line = len(text.splitlines()) + 3
+    assert out[0] == (
+        f"{uvl_file}:{line}:5: warning: constraint uses a comparison: "
+        "rra-agent's feature reasoning ignores it"
+    )
+    assert out[1].startswith(f"{pkg}: ok (")

@@ -75,6 +75,10 @@ def _run_validate(args: argparse.Namespace) -> int:
     if errors:
         print(f"{args.package}: {len(errors)} error(s)", file=sys.stderr)
         return 1
+    from rra_agent.dsl.uvl import uvl_warnings
+
+    for warning in uvl_warnings(pkg.features):  # UVL that the feature reasoning ignores
+        print(warning)
     print(f"{args.package}: ok ({_summary(pkg)})")
     return 0
 
@@ -251,20 +255,32 @@ def _configure(target: str, parser: argparse.ArgumentParser) -> None:
     getattr(importlib.import_module(module), name)(parser)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``rra`` argument parser. With ``only`` (a command name) just that command's
+    arguments are configured: the others' modules (zenoh, cryptography, ...) are not imported,
+    which keeps ``rra validate`` quick to start."""
     parser = argparse.ArgumentParser(
         prog="rra", description="RRA: Robotics Run-time Adaptation (IROS 2015) on Zenoh."
     )
     parser.add_argument("--version", action="version", version=f"rra {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, cmd in COMMANDS.items():
-        cmd.configure(sub.add_parser(name, help=cmd.help, description=cmd.help))
+        p = sub.add_parser(name, help=cmd.help, description=cmd.help)
+        if only is None or name == only:
+            cmd.configure(p)
     return parser
+
+
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (its first non-option word), if it is a known one."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``rra`` with ``argv`` (default: the process arguments); returns the exit status."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help(sys.stderr)

@@ -3,7 +3,9 @@
 A *selection* is a set of feature names. It is valid when the root is selected, every selected
 feature's parent is selected (so unselected features have no selected children), every group
 of a selected feature has a number of selected children within `Group.bounds`, and every
-cross-tree constraint holds (propositional logic, a reference is true iff selected).
+propositional cross-tree constraint holds (a reference is true iff selected; constraints with
+comparisons, arithmetic or imported names are kept in the model but not enforced, see
+`FeatureModel.boolean_constraints`).
 
 Binding times split the selection in two. *Deployment-time* features are fixed once by the
 deployment-time selection (`complete_deployment`); *run-time* features are chosen by the
@@ -207,7 +209,7 @@ class _Index:
         )
         self.end = self._subtree_ends(n)
         self.groups, self.group_of, self.child_groups = self._groups(fm, pos)
-        self.constraints = tuple(self._constraint(c.expr, c.span) for c in fm.constraints)
+        self.constraints = tuple(self._constraint(c.expr, c.span) for c in fm.boolean_constraints)
         cons_of: list[list[int]] = [[] for _ in range(n)]
         for k, c in enumerate(self.constraints):
             for r in c.refs:

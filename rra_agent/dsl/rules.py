@@ -23,6 +23,7 @@ from lark import Lark, Token, Tree, UnexpectedCharacters, UnexpectedInput, Unexp
 from lark.lexer import PatternStr
 from lark.visitors import Transformer_NonRecursive, v_args
 
+from rra_agent.dsl.parser_cache import cached_lark
 from rra_agent.errors import DslSyntaxError, ErrorGroup, Location, RraError, SemanticError
 from rra_agent.models.adaptation import (
     FUNCTIONS,
@@ -83,7 +84,9 @@ Ty = Literal["num", "str", "bool", "any"]
 
 @cache
 def _parser() -> Lark:
-    return Lark(
+    # Built once per grammar version, then loaded from the on-disk parser cache.
+    return cached_lark(
+        "rules",
         _GRAMMAR.read_text(encoding="utf-8"),
         parser="lalr",
         strict=True,  # no shift/reduce conflicts, no colliding terminals (needs interegular)

@@ -14,6 +14,15 @@ so any UVL tool can open the file:
 
 Attribute values are kept exactly as written (``value``), so exporting back to UVL round-trips;
 the RRA view (`kind`, `lower`, ...) is derived from them.
+
+The rest of the UVL language is kept as written too, so a community model is read, checked
+and exported back whole: typed features (`Feature.type`), feature cardinalities
+(`Feature.cardinality`), constraint attributes (`Attribute.constraints`), ``include`` language
+levels and ``imports`` (`FeatureModel.includes`, `FeatureModel.imports`), and constraints beyond
+propositional logic: comparisons, arithmetic, numbers, strings and aggregate functions
+(`Compare`, `Arith`, `Num`, `Text`, `Aggregate`). rra-agent's reasoning uses the propositional
+constraints over the model's own features (`FeatureModel.boolean_constraints`); what it cannot
+use is listed, located, by ``rra_agent.dsl.uvl.uvl_warnings``.
 """
 
 from __future__ import annotations
@@ -30,6 +39,10 @@ from rra_agent.models.base import Model
 Binding = Literal["deployment", "runtime"]
 AttributeKind = Literal["plain", "cim", "nfr", "cv"]
 GroupKind = Literal["mandatory", "optional", "alternative", "or", "cardinality"]
+FeatureType = Literal["Boolean", "Integer", "Real", "String"]
+CompareOp = Literal["==", "!=", "<", "<=", ">", ">="]
+ArithOp = Literal["+", "-", "*", "/"]
+AggregateFunction = Literal["sum", "avg", "len", "floor", "ceil"]
 Scalar = str | int | float | bool
 
 #: Attributes whose meaning RRA defines; anything else is carried along untouched.
@@ -48,11 +61,17 @@ class Span(msgspec.Struct, frozen=True):
 
 
 class Attribute(Model, frozen=True):
-    """A UVL attribute. ``value`` is a scalar, a list, a nested mapping, or None (a flag)."""
+    """A UVL attribute. ``value`` is a scalar, a list, a nested mapping, or None (a flag).
+
+    A constraint attribute (``constraint E`` / ``constraints [E, ...]``) is an Attribute named
+    ``constraint`` / ``constraints`` whose `constraints` holds the expressions (``value`` is
+    None); inside a nested mapping the `ConstraintList` is the value of that key.
+    """
 
     name: str
     value: Scalar | list | dict | None = None
     span: Span | None = None
+    constraints: ConstraintList | None = None
 
     def _get(self, key: str) -> object:
         return self.value.get(key) if isinstance(self.value, dict) else None
@@ -116,13 +135,27 @@ class Attribute(Model, frozen=True):
         return None
 
 
+class Cardinality(Model, frozen=True):
+    """A feature cardinality ``cardinality [lower..upper]`` (``upper`` None means ``*``)."""
+
+    lower: int
+    upper: int | None = None
+
+
 class Feature(Model, frozen=True):
-    """A feature with its attributes and child groups."""
+    """A feature with its attributes and child groups.
+
+    ``type`` is the UVL type written before the name (None: untyped, i.e. Boolean);
+    ``cardinality`` a feature cardinality (clones), which rra-agent's reasoning treats as one
+    instance of the feature.
+    """
 
     name: str
     attributes: tuple[Attribute, ...] = ()
     groups: tuple[Group, ...] = ()
     span: Span | None = None
+    type: FeatureType | None = None
+    cardinality: Cardinality | None = None
 
     def attribute(self, name: str) -> Attribute | None:
         return next((a for a in self.attributes if a.name == name), None)
@@ -183,6 +216,9 @@ class Group(Model, frozen=True):
 
 # Constraint expressions: a tagged union, dispatched with `match`.
 class Ref(Model, frozen=True, tag="ref"):
+    """A reference: a feature (``A``), an attribute (``A.price``) or a name from an imported
+    model (``sub.A``); dotted parts are joined with ``.``."""
+
     name: str
     span: Span | None = None
 
@@ -211,7 +247,52 @@ class Equiv(Model, frozen=True, tag="equiv"):
     right: Expr
 
 
-Expr = Ref | Not | And | Or | Implies | Equiv
+class Compare(Model, frozen=True, tag="compare"):
+    """An equation of UVL's arithmetic level: ``left op right`` over terms."""
+
+    op: CompareOp
+    left: Expr
+    right: Expr
+
+
+class Arith(Model, frozen=True, tag="arith"):
+    """A binary arithmetic term ``left op right``."""
+
+    op: ArithOp
+    left: Expr
+    right: Expr
+
+
+class Num(Model, frozen=True, tag="num"):
+    value: int | float
+
+
+class Text(Model, frozen=True, tag="text"):
+    """A string literal of a string constraint (``name == 'x'``)."""
+
+    value: str
+
+
+class Aggregate(Model, frozen=True, tag="aggregate"):
+    """An aggregate function: ``sum``/``avg`` (attribute, or feature and attribute), ``len``,
+    ``floor``, ``ceil`` (one reference)."""
+
+    function: AggregateFunction
+    args: tuple[Ref, ...]
+    span: Span | None = None
+
+
+Expr = Ref | Not | And | Or | Implies | Equiv | Compare | Arith | Num | Text | Aggregate
+#: The propositional connectives: a constraint made of these and `Ref` is Boolean-level UVL.
+BOOLEAN_NODES = (Ref, Not, And, Or, Implies, Equiv)
+
+
+class ConstraintList(Model, frozen=True, tag="constraints"):
+    """The value of a constraint attribute: ``constraint E`` (``single``) or
+    ``constraints [E, ...]``."""
+
+    exprs: tuple[Expr, ...] = ()
+    single: bool = False
 
 
 class Constraint(Model, frozen=True):
@@ -219,21 +300,49 @@ class Constraint(Model, frozen=True):
     span: Span | None = None
 
 
+class Import(Model, frozen=True):
+    """``imports`` line: another model's namespace, optionally ``as`` an alias."""
+
+    namespace: str
+    alias: str | None = None
+    span: Span | None = None
+
+    @property
+    def prefix(self) -> str:
+        """What references into the imported model start with (``prefix.Feature``)."""
+        return self.alias if self.alias is not None else self.namespace
+
+
+def subexpressions(expr: Expr) -> Iterator[Expr]:
+    """``expr`` and every expression inside it, in pre-order (left to right), iteratively."""
+    stack: list[Expr] = [expr]
+    while stack:
+        e = stack.pop()
+        yield e
+        match e:
+            case Not(operand=o):
+                stack.append(o)
+            case Aggregate(args=args):
+                stack.extend(reversed(args))
+            case (
+                And(left=a, right=b)
+                | Or(left=a, right=b)
+                | Implies(left=a, right=b)
+                | Equiv(left=a, right=b)
+                | Compare(left=a, right=b)
+                | Arith(left=a, right=b)
+            ):
+                stack.extend((b, a))
+
+
 def refs(expr: Expr) -> Iterator[Ref]:
-    """Every feature reference in a constraint expression, left to right."""
-    match expr:
-        case Ref():
-            yield expr
-        case Not(operand=o):
-            yield from refs(o)
-        case (
-            And(left=a, right=b)
-            | Or(left=a, right=b)
-            | Implies(left=a, right=b)
-            | Equiv(left=a, right=b)
-        ):
-            yield from refs(a)
-            yield from refs(b)
+    """Every reference in a constraint expression, left to right."""
+    return (e for e in subexpressions(expr) if isinstance(e, Ref))
+
+
+def is_boolean(expr: Expr) -> bool:
+    """Whether ``expr`` is propositional: references joined by ``! & | => <=>`` only."""
+    return all(isinstance(e, BOOLEAN_NODES) for e in subexpressions(expr))
 
 
 class FeatureModel(Model, frozen=True, dict=True):
@@ -243,6 +352,26 @@ class FeatureModel(Model, frozen=True, dict=True):
     constraints: tuple[Constraint, ...] = ()
     namespace: str | None = None
     source: str = "<features>"
+    #: ``include`` language levels as written (``Arithmetic.aggregate-function``, ``Type.*``).
+    includes: tuple[str, ...] = ()
+    imports: tuple[Import, ...] = ()
+
+    @cached_property
+    def boolean_constraints(self) -> tuple[Constraint, ...]:
+        """The constraints rra-agent reasons with: propositional ones that name no feature of
+        an imported model. The others are kept (and exported) but do not restrict selections."""
+        return tuple(
+            c
+            for c in self.constraints
+            if is_boolean(c.expr) and not any(self.imported(r.name) for r in refs(c.expr))
+        )
+
+    def imported(self, name: str) -> bool:
+        """Whether ``name`` refers into an imported model (``prefix.Feature``) to a feature
+        this model's tree does not hold (an imported root placed in the tree is one of ours)."""
+        return name not in self.features and any(
+            name.startswith(i.prefix + ".") for i in self.imports
+        )
 
     # ---- derived views (computed once) ---------------------------------------------------
     @cached_property

@@ -20,6 +20,7 @@ from pathlib import Path
 import msgspec
 import pytest
 from conftest import ROOT, wait_until
+from test_secure_system import secure  # noqa: F401 (the fixture)
 
 from rra_agent.bus import messages as m
 from rra_agent.cli import main
@@ -255,3 +256,21 @@ def test_phases_are_never_negative_across_clocks() -> None:
     t = 1000.0  # a value stamped by a host whose clock is ahead
     d = phase_durations([t + 0.5], decided=t, received=t - 0.001, plan=0.001, execute=0.002)
     assert min(d.values()) >= 0.0
+
+
+def test_an_operator_with_certificates_names_the_system(secure, capsys) -> None:  # noqa: F811
+    """With --certs, the hub's access control lets an operator see its own system's keys
+    only, so a system is not found unless named: the line says so; named, it is found."""
+    endpoint, certs, _ = secure
+    args = ["--certs", str(certs / "operator"), "--connect", endpoint]
+    rc, _, err = run(["status", *args], capsys)
+    assert rc == 1
+    assert err.strip().endswith("give --system NAME"), err
+
+    def engine_up() -> str | None:
+        rc, out, err = run(["status", *args, "--system", "relay_system"], capsys)
+        assert rc == 0, err
+        return out if out.startswith("system      relay_system (Relay)") else None
+
+    out = wait_until(engine_up, 60, "the engine's status", interval=0.2)
+    assert any(line.split()[:2] == ["local", "up"] for line in out.splitlines()), out

@@ -80,6 +80,11 @@ def pick_system(systems: dict[str, list[str]], wanted: str | None, bus: BusConfi
     if not systems:
         if wanted is not None:
             raise RraError(f"no rra system {wanted!r} answers at {where}; {START_HINT}")
+        if bus.tls is not None:  # the access control hides every system not named
+            raise RraError(
+                f"no rra system answers at {where} to an operator that names none (with "
+                "--certs, the hub tells only about the system you name): give --system NAME"
+            )
         raise no_system(bus)
     names = ", ".join(systems)
     if wanted is not None:

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import re
 import signal
+import socket
 from pathlib import Path
 
-from conftest import wait_until
+from conftest import run_rra, wait_until
 from test_host_agent import PACKAGE, SYSTEM, relay_spec
 
 from rra_agent.bus import messages as m
@@ -49,3 +50,20 @@ def test_agent_prints_its_host_router_and_nodes(procs, bus, tmp_path: Path) -> N
     states = [re.sub(r"^\[[\d:]+\] ", "", line).split()[:2] for line in lines[1:-1]]
     assert states == [["relay", s] for s in ("STARTING", "RUNNING", "STOPPING", "STOPPED")]
     assert lines[-1] == "rra agent: host h1: all processes stopped"
+
+
+def test_agent_on_a_taken_port_says_which_option_moves_it(tmp_path: Path) -> None:
+    port = free_port()
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", port))
+        holder.listen()
+        r = run_rra("agent", "--package", str(PACKAGE), "--host", "h1",
+                    "--log-dir", str(tmp_path / "nodes"), "--listen", f"tcp/127.0.0.1:{port}",
+                    "--connect", f"tcp/127.0.0.1:{free_port()}")  # fmt: skip
+    assert r.returncode == 1
+    assert "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [
+        f"rra agent: cannot listen on tcp/127.0.0.1:{port}: port {port} is already in use "
+        f"(another `rra up`? `ss -ltnp 'sport = :{port}'` shows which program); stop it, or "
+        f"use another port: --listen tcp/127.0.0.1:{port + 1}"
+    ]

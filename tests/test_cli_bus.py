@@ -54,6 +54,13 @@ def test_up_on_a_taken_port_says_which_and_leaves_no_run_folder(tmp_path: Path) 
     assert not runs.exists(), list(runs.rglob("*"))
 
 
+def test_up_refusing_an_option_leaves_no_run_folder(tmp_path: Path, capsys) -> None:
+    runs = tmp_path / "runs"
+    assert main(["up", str(RELAY), "--run-dir", str(runs / "r"), "--rerun", "bogus"]) == 2
+    assert "--rerun" in one_line(capsys.readouterr().err)
+    assert not runs.exists()
+
+
 # ---- the tools with no system ---------------------------------------------------------------
 @pytest.mark.parametrize("cmd", TOOLS, ids=lambda c: c[0])
 def test_a_tool_with_nothing_at_the_endpoint_says_so_at_once(

@@ -365,10 +365,11 @@ def _zenoh_text(error: Exception) -> str:
     return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", str(error)).strip()
 
 
-def explain_open_failure(error: Exception, bus: BusConfig) -> RraError:
+def explain_open_failure(error: Exception, bus: BusConfig, *, hub: bool = False) -> RraError:
     """One actionable line (what, where, what to try) for a Zenoh session that could not be
     opened with ``bus``: a port in use, a TLS identity Zenoh refused (naming the file), no
-    Zenoh router at the connect endpoints."""
+    Zenoh router at the connect endpoints. ``hub``: ``bus`` is the router of ``rra up``,
+    whose first listen endpoint is the hub (moved with ``--connect``, not ``--listen``)."""
     if isinstance(error, RraError):
         return error
     text = _zenoh_text(error)
@@ -379,10 +380,15 @@ def explain_open_failure(error: Exception, bus: BusConfig) -> RraError:
         )
         proto, host, port = _split(endpoint)
         other = f"{proto}/{host}:{int(port) + 1}" if port.isdigit() else f"{proto}/{host}:PORT"
+        move = (
+            f"--connect {other} here and for the tools"
+            if hub and bus.listen and endpoint == bus.listen[0]
+            else f"--listen {other}"
+        )
         return RraError(
             f"cannot listen on {endpoint}: port {port} is already in use (another `rra up`? "
             f"`ss -ltnp 'sport = :{port}'` shows which program); stop it, or use another "
-            f"port: --connect {other} here and for the tools"
+            f"port: {move}"
         )
     if bus.tls is not None and re.search(r"TLS|certificate|private key|trust anchor", text):
         problem = tls_file_problem(bus.tls)

@@ -21,7 +21,6 @@ from pathlib import Path
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.deployment import Deployment, deploy
-from rra_agent.errors import RraError
 from rra_agent.host.agent import (
     HostAgent,
     describe_router,
@@ -129,6 +128,24 @@ def run(args: argparse.Namespace) -> int:
     #: The folders this run makes (removed again if the hub cannot even start).
     made = [p for p in (run_dir, *run_dir.parents) if not p.exists()]
     run_dir.mkdir(parents=True, exist_ok=True)
+    started: list[bool] = []
+    try:
+        return _run(args, dep, names, bus, run_dir, started)
+    finally:
+        if not started:  # nothing ran (e.g. the hub's port is taken): no empty run folder
+            for folder in made:
+                shutil.rmtree(folder, ignore_errors=True)
+
+
+def _run(
+    args: argparse.Namespace,
+    dep: Deployment,
+    names: list[str],
+    bus: BusConfig,
+    run_dir: Path,
+    started: list[bool],
+) -> int:
+    """Run the system with its run folder made; ``started`` gets an item once it starts."""
     # A new run starts from the default selection; the engine's state file only carries the
     # applied selection across a restart of the engine *within* a run.
     (run_dir / "resolution-state.json").unlink(missing_ok=True)
@@ -158,8 +175,6 @@ def run(args: argparse.Namespace) -> int:
     )
     agent.observers.append(state_printer(quiet=args.quiet))
 
-    started: list[bool] = []
-
     def start_engines() -> None:
         started.append(True)
         for spec in specs:
@@ -172,13 +187,7 @@ def run(args: argparse.Namespace) -> int:
                 flush=True,
             )
 
-    try:
-        agent.run(on_ready=start_engines)
-    except RraError:
-        if not started:  # nothing ran: leave no empty run folder behind
-            for folder in made:
-                shutil.rmtree(folder, ignore_errors=True)
-        raise
+    agent.run(on_ready=start_engines)
     if not args.quiet:
         print("rra up: all processes stopped", flush=True)
     # -- Rerun logging (rra_agent.viz): merge the processes' files, once all have exited --

@@ -87,6 +87,8 @@ class HostAgent:
     ) -> None:
         self.keys = Keys(system)
         self.host = check_chunk(host, "host")
+        #: This agent's router is the hub (``rra up``): the tools' endpoint.
+        self.hub = hub
         #: This host's Zenoh router (run by this agent) and how its children connect to it.
         router = bus.host_router(hub=hub)
         self.bus = router.local_client()
@@ -551,7 +553,7 @@ class HostAgent:
             session = open_session(self.session_bus)
         except zenoh.ZError as e:  # e.g. the port is taken: one line, nothing left running
             self.local.kill_all()
-            raise explain_open_failure(e, self.session_bus) from None
+            raise explain_open_failure(e, self.session_bus, hub=self.hub) from None
         self.session = session
         try:
             self._publisher = session.declare_publisher(

@@ -107,25 +107,28 @@ def connect_system(
         # queries of its own system's keys only.
         found = running_systems(session, system or "*", timeout)
         name = pick_system(found, system, bus)
-        client = BusClient(bus, name, session=session)
+        return BusClient(bus, name, session=session, own=True)
     except BaseException:
         session.close()
         raise
-    client._own = True
-    client.hosts = found.get(name, [])
-    return client
 
 
 class BusClient:
-    def __init__(self, bus: BusConfig, system: str, session: zenoh.Session | None = None):
+    def __init__(
+        self,
+        bus: BusConfig,
+        system: str,
+        session: zenoh.Session | None = None,
+        *,
+        own: bool | None = None,
+    ):
         self.keys = Keys(system)
         #: A client with a certificate (``--certs``) is an operator: the access control lets
         #: it call the engines, not host or node control, so it asks the engines instead.
         self.restricted = bus is not None and bus.tls is not None
-        self._own = session is None
+        #: Whether `close` closes the session (default: only one it opened itself).
+        self._own = session is None if own is None else own
         self.session = session if session is not None else open_session(bus, wait_connected=True)
-        #: The system's host agents when it was found (`connect_system`).
-        self.hosts: list[str] = []
 
     def close(self) -> None:
         if self._own:

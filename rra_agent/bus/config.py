@@ -313,6 +313,8 @@ class BusConfig(Model, frozen=True):
 # ---- what a failure of the bus means, in one actionable line ------------------------------
 #: What to try when no system answers at an endpoint (the tools' hub by default).
 START_HINT = "start one with `rra up PKG` or give --connect ENDPOINT"
+#: What to try when a certificate file is unusable.
+CERTS_HINT = "make the certificates again with `rra certs PKG --out DIR`"
 
 
 def accepts_tcp(endpoint: str, timeout: float = 1.0) -> bool | None:
@@ -393,7 +395,7 @@ def explain_open_failure(error: Exception, bus: BusConfig, *, hub: bool = False)
     if bus.tls is not None and re.search(r"TLS|certificate|private key|trust anchor", text):
         problem = tls_file_problem(bus.tls)
         if problem is not None:
-            return RraError(f"bad TLS identity: {problem}; make it again with `rra certs`")
+            return RraError(f"bad TLS identity: {problem}; {CERTS_HINT}")
         return RraError(f"TLS refused the certificates of {Path(bus.tls.cert).parent}: {text}")
     if "Unable to connect" in text:
         return no_system(bus, reachable=any(accepts_tcp(ep) for ep in bus.connect))
@@ -408,9 +410,7 @@ def no_system(bus: BusConfig, *, reachable: bool | None = None) -> RraError:
     if bus.tls is not None:
         problem = tls_file_problem(bus.tls)
         if problem is not None:
-            return RraError(
-                f"bad TLS identity: {problem}; make it again with `rra certs PKG --out DIR`"
-            )
+            return RraError(f"bad TLS identity: {problem}; {CERTS_HINT}")
     if reachable:
         hint = (
             "the TLS handshake was refused: are the certificates of --certs from this "

@@ -235,19 +235,15 @@ def _system_section(eng: dict[str, Any] | None, wide: bool) -> list[str]:
 
 def _hosts_section(status: dict[str, Any], wide: bool) -> list[str]:
     """One line per host agent: up or not, its router's endpoints, its live nodes."""
-    agents = status.get("host_agents")
-    if agents is None:  # a status gathered by an older rra
-        agents = [{"host": h, "state": "up", "nodes": "-"} for h in status.get("hosts", [])]
+    agents = status.get("host_agents", [])
     if not agents:
         return ["hosts       -"]
     lines = [f"{'HOST':<16} {'AGENT':<11} {'NODES':>5}  ROUTER"]
     for a in agents:
-        router = ", ".join(
-            [*(f"listens {ep}" for ep in a.get("listen", [])),
-             *(f"links {ep}" for ep in a.get("connect", []))]
-        )  # fmt: skip
-        line = f"{_cut(a['host'], 16, wide):<16} {a['state']:<11} {a['nodes']:>5}  {router or '-'}"
-        lines.append(line if wide else _cut(line, WIDTH, wide))
+        endpoints = [f"listens {ep}" for ep in a["listen"]] + [f"links {ep}" for ep in a["connect"]]
+        router = ", ".join(endpoints) or "-"
+        line = f"{_cut(a['host'], 16, wide):<16} {a['state']:<11} {a['nodes']:>5}  {router}"
+        lines.append(_cut(line, WIDTH, wide))
     return lines
 
 

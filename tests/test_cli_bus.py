@@ -54,6 +54,19 @@ def test_up_on_a_taken_port_says_which_and_leaves_no_run_folder(tmp_path: Path) 
     assert not runs.exists(), list(runs.rglob("*"))
 
 
+def test_up_on_an_address_of_another_machine(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    r = run_rra("up", str(RELAY), "--connect", "tcp/192.0.2.1:7447", "--insecure", "-q",
+                "--run-dir", str(runs / "r"))  # fmt: skip
+    assert r.returncode == 1
+    assert one_line(r.stderr) == (
+        "rra up: cannot listen on tcp/192.0.2.1:7447: no network interface of this machine "
+        "has the address 192.0.2.1 (`ip -brief address` lists them); listen on one of them, "
+        "or on 0.0.0.0 for all"
+    )
+    assert not runs.exists()
+
+
 def test_up_refusing_an_option_leaves_no_run_folder(tmp_path: Path, capsys) -> None:
     runs = tmp_path / "runs"
     assert main(["up", str(RELAY), "--run-dir", str(runs / "r"), "--rerun", "bogus"]) == 2

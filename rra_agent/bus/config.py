@@ -392,6 +392,13 @@ def explain_open_failure(error: Exception, bus: BusConfig, *, hub: bool = False)
             f"`ss -ltnp 'sport = :{port}'` shows which program); stop it, or use another "
             f"port: {move}"
         )
+    if "Cannot assign requested address" in text:
+        endpoint = next((ep for ep in bus.listen if _split(ep)[1] in text), bus.listen[0])
+        return RraError(
+            f"cannot listen on {endpoint}: no network interface of this machine has the "
+            f"address {_split(endpoint)[1]} (`ip -brief address` lists them); listen on one "
+            "of them, or on 0.0.0.0 for all"
+        )
     if bus.tls is not None and re.search(r"TLS|certificate|private key|trust anchor", text):
         problem = tls_file_problem(bus.tls)
         if problem is not None:

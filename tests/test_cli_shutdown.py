@@ -114,6 +114,7 @@ def test_ctrl_c_while_the_engines_start(tmp_path: Path) -> None:
 
 def test_ctrl_c_of_a_running_system(tmp_path: Path) -> None:
     up = Up(tmp_path)
+    follower: subprocess.Popen[bytes] | None = None
     bus = BusConfig(connect=[up.endpoint], lease_ms=500)
     try:
         wait_until(lambda: "Ctrl-C to stop" in up.printed(), 60, "rra up listening")
@@ -130,11 +131,26 @@ def test_ctrl_c_of_a_running_system(tmp_path: Path) -> None:
             wait_until(deployed, 60, "the system deployed, every process running", 0.1)
         pids = up.pids()
         assert len(pids) >= 9
+        followed = tmp_path / "events.out"
+        with followed.open("wb") as out:
+            follower = subprocess.Popen(
+                [sys.executable, "-m", "rra_agent", "events", "--connect", up.endpoint],
+                stdout=out, stderr=subprocess.STDOUT, cwd=ROOT,
+                env={**os.environ, "PYTHONPATH": str(ROOT)},
+            )  # fmt: skip
+        wait_until(lambda: "following system" in followed.read_text(), 30, "rra events")
         assert up.ctrl_c() == 0, up.printed()
+        # `rra events` sees the system go and ends by itself.
+        assert follower.wait(30) == 0
     finally:
         up.kill()
+        if follower is not None and follower.poll() is None:
+            follower.kill()
     check_clean(up, pids)
     assert "rra up: all processes stopped" in up.printed()
+    events = followed.read_text()
+    assert "Traceback" not in events
+    assert events.splitlines()[-1] == "system 'relay_system' stopped: no host agent is left"
 
 
 # ---- the supervisor: how a starting process is stopped ----------------------------------------

@@ -434,13 +434,35 @@ def run_events(args: argparse.Namespace) -> int:
         if not args.json:
             hidden = "" if args.all else " (CV updates hidden: --all shows them)"
             print(f"following system {client.keys.system!r}{hidden}; Ctrl-C to stop", flush=True)
-        subscriber = client.session.declare_subscriber(client.keys.events, on_event)
+        hosts: set[str] = set()
+        lock = threading.Lock()
+
+        def on_host(sample: zenoh.Sample) -> None:
+            """The last host agent of the system gone: it stopped, and so does following."""
+            host = str(sample.key_expr).rsplit("/", 1)[-1]
+            with lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    hosts.add(host)
+                elif host in hosts:
+                    hosts.discard(host)
+                    if not hosts:
+                        done.set()
+
+        entities = [
+            client.session.declare_subscriber(client.keys.events, on_event),
+            client.session.liveliness().declare_subscriber(
+                client.keys.host_alive_all, on_host, history=True
+            ),
+        ]
         try:
             done.wait()
         except KeyboardInterrupt:
             return 0
         finally:
-            subscriber.undeclare()
+            for entity in entities:
+                entity.undeclare()
+        if not args.json:
+            print(f"system {client.keys.system!r} stopped: no host agent is left", flush=True)
     return 0
 
 

@@ -93,10 +93,12 @@ def test_refused_overrides_are_one_line_errors(system, bus):
     out = run_rra(
         "select", "--system", "no_such_system", "--connect", sys_.connect, "--timeout", "1", "A=on"
     )
-    assert out.returncode == 1 and "no Adaptation Engine leads system 'no_such_system'" in (
-        out.stderr
-    )
+    assert out.returncode == 1 and "no system 'no_such_system'" in out.stderr
+    assert "running there: relay_system" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
+    # The one system at the endpoint is found without --system.
+    out = run_rra("select", "--connect", sys_.connect)
+    assert out.returncode == 0 and "no run-time feature is forced" in out.stdout, out.stderr
 
 
 def test_no_bus_at_the_endpoint_is_one_line() -> None:

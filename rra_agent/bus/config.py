@@ -310,6 +310,125 @@ class BusConfig(Model, frozen=True):
         return msgspec.structs.replace(self, **changes)
 
 
+# ---- what a failure of the bus means, in one actionable line ------------------------------
+#: What to try when no system answers at an endpoint (the tools' hub by default).
+START_HINT = "start one with `rra up PKG` or give --connect ENDPOINT"
+#: What to try when a certificate file is unusable.
+CERTS_HINT = "make the certificates again with `rra certs PKG --out DIR`"
+
+
+def accepts_tcp(endpoint: str, timeout: float = 1.0) -> bool | None:
+    """Whether anything accepts a TCP connection at a ``tcp/`` or ``tls/`` endpoint right now:
+    False when it is refused (nothing listens: a definite answer, at once, even on a loaded
+    machine), True when accepted, None when it cannot tell (another protocol, a wildcard
+    address, or no answer within ``timeout``: a firewall or a host that is down)."""
+    proto, host, port = _split(endpoint)
+    if proto not in ("tcp", "tls") or not port.isdigit() or host in ("", "0.0.0.0", "::"):
+        return None
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout):
+            return True
+    except ConnectionRefusedError:
+        return False
+    except OSError:
+        return None
+
+
+def tls_file_problem(tls: Tls) -> str | None:
+    """The first certificate file of ``tls`` that is not what it should be, as
+    ``PATH: what is wrong``; None when all three parse (the CA and the certificate as PEM
+    certificates, the key as a PEM private key, the certificate signed by the CA)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    loaded: dict[str, Any] = {}
+    for what, path in (("ca", tls.ca), ("cert", tls.cert), ("key", tls.key)):
+        try:
+            data = Path(path).read_bytes()
+        except OSError as e:
+            return f"{path}: cannot read it ({e.strerror or e})"
+        try:
+            if what == "key":
+                loaded[what] = serialization.load_pem_private_key(data, password=None)
+            else:
+                loaded[what] = x509.load_pem_x509_certificate(data)
+        except (ValueError, TypeError) as e:
+            kind = "a PEM private key" if what == "key" else "a PEM certificate"
+            return f"{path}: not {kind} ({str(e).splitlines()[0] if str(e) else 'unreadable'})"
+    try:
+        loaded["cert"].verify_directly_issued_by(loaded["ca"])
+    except Exception:  # signature, issuer name or key type: all mean "not from this CA"
+        return f"{tls.cert}: not signed by the CA of {tls.ca}"
+    return None
+
+
+def _zenoh_text(error: Exception) -> str:
+    """A Zenoh error without its source locations (``... at /root/.cargo/...rs:61.``)."""
+    return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", str(error)).strip()
+
+
+def explain_open_failure(error: Exception, bus: BusConfig, *, hub: bool = False) -> RraError:
+    """One actionable line (what, where, what to try) for a Zenoh session that could not be
+    opened with ``bus``: a port in use, a TLS identity Zenoh refused (naming the file), no
+    Zenoh router at the connect endpoints. ``hub``: ``bus`` is the router of ``rra up``,
+    whose first listen endpoint is the hub (moved with ``--connect``, not ``--listen``)."""
+    if isinstance(error, RraError):
+        return error
+    text = _zenoh_text(error)
+    if "Address already in use" in text:
+        endpoint = next(
+            (ep for ep in bus.listen if f":{_split(ep)[2]}" in text),
+            bus.listen[0] if bus.listen else bus.hub,
+        )
+        proto, host, port = _split(endpoint)
+        other = f"{proto}/{host}:{int(port) + 1}" if port.isdigit() else f"{proto}/{host}:PORT"
+        move = (
+            f"--connect {other} here and for the tools"
+            if hub and bus.listen and endpoint == bus.listen[0]
+            else f"--listen {other}"
+        )
+        return RraError(
+            f"cannot listen on {endpoint}: port {port} is already in use (another `rra up`? "
+            f"`ss -ltnp 'sport = :{port}'` shows which program); stop it, or use another "
+            f"port: {move}"
+        )
+    if "Cannot assign requested address" in text:
+        endpoint = next((ep for ep in bus.listen if _split(ep)[1] in text), bus.listen[0])
+        return RraError(
+            f"cannot listen on {endpoint}: no network interface of this machine has the "
+            f"address {_split(endpoint)[1]} (`ip -brief address` lists them); listen on one "
+            "of them, or on 0.0.0.0 for all"
+        )
+    if bus.tls is not None and re.search(r"TLS|certificate|private key|trust anchor", text):
+        problem = tls_file_problem(bus.tls)
+        if problem is not None:
+            return RraError(f"bad TLS identity: {problem}; {CERTS_HINT}")
+        return RraError(f"TLS refused the certificates of {Path(bus.tls.cert).parent}: {text}")
+    if "Unable to connect" in text:
+        return no_system(bus, reachable=any(accepts_tcp(ep) for ep in bus.connect))
+    where = ", ".join(bus.listen or bus.connect)
+    return RraError(f"cannot open the bus session on {where}: {text}")
+
+
+def no_system(bus: BusConfig, *, reachable: bool | None = None) -> RraError:
+    """Nothing usable answers at the connect endpoints. ``reachable``: something accepted a
+    TCP connection there but no Zenoh session could be opened with it."""
+    where = ", ".join(bus.connect) or DEFAULT_HUB
+    if bus.tls is not None:
+        problem = tls_file_problem(bus.tls)
+        if problem is not None:
+            return RraError(f"bad TLS identity: {problem}; {CERTS_HINT}")
+    if reachable:
+        hint = (
+            "the TLS handshake was refused: are the certificates of --certs from this "
+            "system's `rra certs`?"
+            if bus.tls is not None
+            else "it is not an rra hub (or it needs TLS: --certs DIR)"
+        )
+        return RraError(f"something listens at {where} but no Zenoh session opens: {hint}")
+    return RraError(f"no rra system answers at {where}; {START_HINT}")
+
+
 def add_bus_arguments(parser) -> None:  # argparse.ArgumentParser
     """The bus flags every rra process accepts."""
     g = parser.add_argument_group("bus")

@@ -1,33 +1,31 @@
 """``rra select``: an operator forces run-time features on or off.
 
-``rra select --system NAME FEATURE=on|off|auto ...`` asks the Adaptation Engine leader
+``rra select [--system NAME] FEATURE=on|off|auto ...`` asks the Adaptation Engine leader
 (`ForceFeatures` on ``engine/adaptation/ctl``) to force each FEATURE on or off, or to release
 it (``auto``: the rules decide again). The engine checks the choices against the feature
 model (a refused one changes nothing and is printed as one line), records an ``override``
 adaptation event, and from then on its rules cannot change a forced feature. Without
-choices, ``rra select --system NAME`` prints the features forced now.
+choices, ``rra select`` prints the features forced now.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import getpass
 import socket
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import Any
 
-import zenoh
-
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.client import BusClient, NoReply, connect_system, wait_until
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
+from rra_agent.cli.status import add_system_argument
 from rra_agent.core.overrides import CHOICES
 from rra_agent.errors import RraError
 
 
 def configure(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--system", required=True, help="system name (the package's)")
+    add_system_argument(p)
     p.add_argument(
         "choices",
         nargs="*",
@@ -59,23 +57,6 @@ def operator_name() -> str:
     return f"{user}@{socket.gethostname()}"
 
 
-@contextlib.contextmanager
-def _client(args: argparse.Namespace) -> Iterator[BusClient]:
-    bus = bus_from_args(args)
-    try:
-        client = BusClient(bus, args.system)
-    except zenoh.ZError as e:
-        where = ", ".join(bus.connect or bus.listen) or "the default endpoint"
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0].split(" at /")[0]
-        raise RraError(
-            f"cannot open the bus at {where}: {first} (check --connect, --certs)"
-        ) from None
-    try:
-        yield client
-    finally:
-        client.close()
-
-
 def _ask(client: BusClient, request: m.EngineRequest, timeout: float) -> dict[str, Any]:
     """One request to the Adaptation Engine leader, once its token has reached us."""
     system = client.keys.system
@@ -103,7 +84,7 @@ def _ask(client: BusClient, request: m.EngineRequest, timeout: float) -> dict[st
 
 def run(args: argparse.Namespace) -> int:
     choices = parse_choices(args.choices)
-    with _client(args) as client:
+    with connect_system(bus_from_args(args), args.system) as client:
         if choices:
             request = m.ForceFeatures(features=choices, operator=operator_name())  # type: ignore[arg-type]
             result = _ask(client, request, args.timeout)

@@ -9,28 +9,48 @@ node-state transitions live (or prints a saved ``events.jsonl`` with ``--log``).
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
+import re
+import textwrap
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.client import BusClient, NoReply, connect_system, wait_until
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
 from rra_agent.errors import RraError
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 
 
+#: ``rra status`` fits this many columns unless ``--wide`` is given.
+WIDTH = 100
+#: Engine roles (a node with one of these roles is an engine replica).
+ENGINE_ROLES = ("monitor", "adaptation", "resolution")
+
+
+def add_system_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--system",
+        help="system name (the package's); needed only when several systems run at the endpoint",
+    )
+
+
 def configure_status(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--system", required=True, help="system name (the package's)")
+    add_system_argument(p)
     p.add_argument("--watch", type=float, metavar="S", help="refresh every S seconds")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.add_argument("--wide", action="store_true", help="also show each node's implementation")
+    p.add_argument("--json", action="store_true", help="machine-readable output (everything)")
+    p.add_argument(
+        "--wide",
+        action="store_true",
+        help=f"the full table (each node's implementation), not cut to {WIDTH} columns",
+    )
     add_bus_arguments(p)
 
 
@@ -71,13 +91,52 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         state = f"{st['state']}?" if st.get("host") in unreachable else st["state"]
         nodes.append({"node": name, **st, "state": state})
     families = ("engine",) if client.restricted else ("node", "host")
+    hosts = sorted({*eng.get("hosts", {}), *present})
     return {
         "engine": engine,
         "nodes": nodes,
         # The model's hosts as the engine sees them (an unreachable one too), and any other.
-        "hosts": sorted({*eng.get("hosts", {}), *present}),
+        "hosts": hosts,
+        "host_agents": _host_agents(client, hosts, present, unreachable, nodes, timeout),
         "stats": process_stats(client, timeout, families=families),
     }
+
+
+def _host_agents(
+    client: BusClient,
+    hosts: list[str],
+    present: set[str],
+    unreachable: set[str],
+    nodes: list[dict[str, Any]],
+    timeout: float,
+) -> list[dict[str, Any]]:
+    """Each host agent: whether it is up, its router's endpoints (its answer to a ``Ping``;
+    an operator with a certificate may not ask) and how many nodes run on it."""
+    out = []
+    for host in hosts:
+        info: dict[str, Any] = {}
+        if host in present and not client.restricted:
+            with contextlib.suppress(NoReply):
+                reply = client.host(host, m.Ping(), timeout)
+                if isinstance(reply, m.Ok) and isinstance(reply.result, dict):
+                    info = reply.result
+        live = [n for n in nodes if n.get("host") == host and n.get("state") in LIVE_STATES]
+        state = "up" if host in present else "unreachable" if host in unreachable else "absent"
+        out.append(
+            {
+                "host": host,
+                "state": state,
+                "pid": info.get("pid"),
+                "listen": info.get("listen", []),
+                "connect": info.get("connect", []),
+                "nodes": len(live),
+            }
+        )
+    return out
+
+
+#: Node states in which a process exists (``rra status`` counts them per host).
+LIVE_STATES = frozenset({"STARTING", "RUNNING", "UNRESPONSIVE", "STOPPING"})
 
 
 def _engine_status(client: BusClient, timeout: float) -> dict[str, Any] | None:
@@ -130,72 +189,115 @@ def process_stats(
     return out
 
 
+# ---- rendering: one function per section ---------------------------------------------------
 def render(status: dict[str, Any], *, wide: bool = False) -> str:
-    lines = []
-    eng = status.get("engine")
-    if eng:
-        leader = eng.get("leader") or []
-        who = f"   leader {leader[1]} (epoch {leader[0]})" if leader else ""
-        lines.append(f"system      {eng['system']} ({', '.join(eng['deployment'])}){who}")
-        lines.append(f"selection   {', '.join(eng['selection']) or '-'}")
-        cv = ", ".join(f"{k}={v:.3g}" for k, v in sorted(eng["cv"].items()))
-        lines.append(f"cv          {cv or '-'}")
-        for node, values in sorted(eng.get("overrides", {}).items()):
-            set_ = ", ".join(f"{k}={v!r}" for k, v in sorted(values.items()))
-            lines.append(f"operator    {node}: {set_}")
-        lines += adaptation_lines(eng)
-        if eng.get("failed"):
-            lines.append("last adaptation FAILED (rolled back); see `rra events`")
-    else:
-        lines.append("resolution engine: not reachable")
-    unreachable = set((eng or {}).get("unreachable", []))
-    hosts = ", ".join(
-        f"{h} ({'unreachable' if h in unreachable else 'up'})" for h in status.get("hosts", [])
+    """``rra status`` as text: the system, its hosts, its nodes; at most `WIDTH` columns
+    unless ``wide``."""
+    sections = [
+        _system_section(status.get("engine"), wide),
+        _hosts_section(status, wide),
+        _nodes_section(status, wide),
+    ]
+    return "\n\n".join("\n".join(lines) for lines in sections if lines)
+
+
+def _field(label: str, text: str, wide: bool) -> list[str]:
+    """``label`` and ``text`` in two columns, ``text`` wrapped at `WIDTH` (unless ``wide``)."""
+    head = f"{label:<11} "
+    if wide or len(head) + len(text) <= WIDTH:
+        return [head + text]
+    return textwrap.wrap(
+        text,
+        WIDTH,
+        initial_indent=head,
+        subsequent_indent=" " * len(head),
+        break_on_hyphens=False,
     )
-    lines.append(f"hosts       {hosts or '-'}")
-    desired = (eng or {}).get("desired", {})
+
+
+def _system_section(eng: dict[str, Any] | None, wide: bool) -> list[str]:
+    """The system, its leader, the run-time selection, the CV values and operator settings."""
+    if not eng:
+        return ["resolution engine: not reachable"]
+    leader = eng.get("leader") or []
+    who = f"; leader {leader[1]} (epoch {leader[0]})" if leader else ""
+    lines = _field("system", f"{eng['system']} ({', '.join(eng['deployment'])}){who}", wide)
+    lines += _field("selection", ", ".join(eng["selection"]) or "-", wide)
+    cv = ", ".join(f"{k}={v:.3g}" for k, v in sorted(eng["cv"].items()))
+    lines += _field("cv", cv or "-", wide)
+    for node, values in sorted(eng.get("overrides", {}).items()):
+        set_ = ", ".join(f"{k}={v!r}" for k, v in sorted(values.items()))
+        lines += _field("operator", f"{node}: {set_}", wide)
+    lines += adaptation_lines(eng, wide)
+    if eng.get("failed"):
+        lines.append("last adaptation FAILED (rolled back); see `rra events`")
+    return lines
+
+
+def _hosts_section(status: dict[str, Any], wide: bool) -> list[str]:
+    """One line per host agent: up or not, its router's endpoints, its live nodes."""
+    agents = status.get("host_agents", [])
+    if not agents:
+        return ["hosts       -"]
+    lines = [f"{'HOST':<16} {'AGENT':<11} {'NODES':>5}  ROUTER"]
+    for a in agents:
+        endpoints = [f"listens {ep}" for ep in a["listen"]] + [f"links {ep}" for ep in a["connect"]]
+        router = ", ".join(endpoints) or "-"
+        line = f"{_cut(a['host'], 16, wide):<16} {a['state']:<11} {a['nodes']:>5}  {router}"
+        lines.append(_cut(line, WIDTH, wide))
+    return lines
+
+
+def _nodes_section(status: dict[str, Any], wide: bool) -> list[str]:
+    """One row per node: desired and observed state, host, pid, restarts, counters."""
+    eng = status.get("engine") or {}
+    desired = eng.get("desired", {})
     stats = {
         k.split(":", 1)[1]: v
         for k, v in status.get("stats", {}).items()
         if not k.startswith("host:")
     }
-    lines.append("")
     header = (
         f"{'NODE':<24} {'HOST':<8} {'WANT':<7} {'STATE':<12} {'PID':>7} {'RST':>3} "
         f"{'RECV':>7} {'DROP':>5} {'REJ':>4}"
     )
-    lines.append(header + ("  IMPLEMENTATION" if wide else ""))
+    lines = [header + ("  IMPLEMENTATION" if wide else "")]
     seen = set()
-    for n in sorted(status["nodes"], key=lambda n: (n["host"], n["node"])):
+    for n in sorted(status["nodes"], key=lambda n: (n["host"] or "", n["node"])):
         seen.add(n["node"])
         lines.append(_row(n, desired.get(n["node"]), stats.get(n["node"], {}), wide))
     for name, d in sorted(desired.items()):
         if name not in seen:  # desired, but no host agent reports it
             row = {"node": name, "host": d["host"], "state": "UNKNOWN", "restarts": 0}
             lines.append(_row(row, d, {}, wide))
-    return "\n".join(lines)
+    return lines
 
 
-def adaptation_lines(eng: dict[str, Any]) -> list[str]:
+def _cut(text: str, width: int, wide: bool) -> str:
+    """``text`` at most ``width`` characters (its end replaced by ``~``) unless ``wide``."""
+    return text if wide or len(text) <= width else text[: width - 1] + "~"
+
+
+def adaptation_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:
     """The features operators forced (``rra select``) and the run-time conflicts in force,
     as the Run-time Resolution Engine holds them (nothing when there are none)."""
     lines = []
     forced = eng.get("forced") or {}
     if forced:
-        lines.append("forced      " + ", ".join(f"{f} {v}" for f, v in sorted(forced.items())))
+        lines += _field("forced", ", ".join(f"{f} {v}" for f, v in sorted(forced.items())), wide)
     for c in eng.get("conflicts") or []:
         rules = c.get("rules") or []
         wants = c.get("wants") or {}
         who = ", ".join(f"{r} wants {wants.get(r, '?')}" for r in rules)
         since = time.strftime("%H:%M:%S", time.localtime(c.get("since") or c.get("stamp", 0)))
-        lines.append(f"conflict    {c.get('target')}: {who} (since {since})")
+        lines += _field("conflict", f"{c.get('target')}: {who} (since {since})", wide)
     return lines
 
 
 def _row(n: dict[str, Any], want: dict[str, Any] | None, st: dict[str, Any], wide: bool) -> str:
     if want is None:
         role = st.get("role", "node")
-        wanted = "engine" if role in ("monitor", "adaptation", "resolution") else "-"
+        wanted = "engine" if role in ENGINE_ROLES else "-"
     else:
         wanted = "standby" if want.get("standby") else "run"
     pid = str(n.get("pid") or "-")
@@ -203,18 +305,20 @@ def _row(n: dict[str, Any], want: dict[str, Any] | None, st: dict[str, Any], wid
         str(st.get(k, 0)) if st else "-" for k in ("received", "dropped", "rejected")
     )
     line = (
-        f"{n['node'][:24]:<24} {n['host'][:8]:<8} {wanted:<7} {n['state']:<12} {pid:>7} "
-        f"{n.get('restarts', 0):>3} {recv:>7} {drop:>5} {rej:>4}"
+        f"{_cut(n['node'], 24, wide):<24} {_cut(n['host'] or '-', 8, wide):<8} {wanted:<7} "
+        f"{n['state']:<12} {pid:>7} {n.get('restarts', 0):>3} {recv:>7} {drop:>5} {rej:>4}"
     )
     return line + (f"  {n.get('implementation', '')}" if wide else "")
 
 
 def run_status(args: argparse.Namespace) -> int:
-    with BusClient(bus_from_args(args), args.system) as client:
+    with connect_system(bus_from_args(args), args.system) as client:
         while True:
             status = gather(client)
             if not status["hosts"] and status["engine"] is None:
-                raise RraError(f"no running system {args.system!r} reachable on the bus")
+                raise RraError(
+                    f"system {client.keys.system!r} stopped: no host agent or engine answers"
+                )
             if args.json:
                 print(msgspec.json.encode(status).decode(), flush=True)
             else:
@@ -227,62 +331,160 @@ def run_status(args: argparse.Namespace) -> int:
 
 
 def configure_events(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--system", help="system name (to follow live)")
-    p.add_argument("--log", metavar="FILE", help="print a saved events.jsonl instead")
+    add_system_argument(p)
+    p.add_argument("--log", metavar="FILE", help="print a saved events.jsonl (in time order)")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
+    p.add_argument(
+        "--all",
+        action="store_true",
+        help="also the CV updates (parameters following a context value, e.g. every second)",
+    )
+    p.add_argument("--wide", action="store_true", help=f"long lines not wrapped at {WIDTH}")
     add_bus_arguments(p)
 
 
-def format_event(ev: m.AdaptationEvent | m.NodeState) -> str:
+#: ``applied selection [...]``: the features of an applied adaptation (the Run-time
+#: Resolution Engine's message), up to the step count.
+_APPLIED = re.compile(r"^applied selection (\[.*?\])")
+#: Plan steps that only hand new values to running nodes.
+_PARAM_STEP = "set_params "
+
+
+class EventFilter:
+    """Which events ``rra events`` shows by default: all but the CV updates.
+
+    A CV update is an applied adaptation that keeps the run-time selection and only sets
+    parameters (a CV value following the context, e.g. MaxVel following the battery every
+    second). Everything else is shown, event kinds this filter does not know included:
+    swaps, starts and stops, operators' parameters, new selections, failures, warnings.
+    ``selection``: the run-time selection when following starts (unknown: the first applied
+    adaptation is shown)."""
+
+    def __init__(self, selection: Iterable[str] | None = None) -> None:
+        self.selection = frozenset(selection) if selection is not None else None
+
+    def shows(self, ev: m.AdaptationEvent | m.NodeState) -> bool:
+        return not self.is_cv_update(ev)
+
+    def is_cv_update(self, ev: m.AdaptationEvent | m.NodeState) -> bool:
+        if not isinstance(ev, m.AdaptationEvent) or ev.kind != "adaptation":
+            return False
+        match = _APPLIED.match(ev.message)
+        if match is None or ev.outcome != "ok" or ev.level != "info":
+            return False
+        try:
+            applied = frozenset(ast.literal_eval(match.group(1)))
+        except (ValueError, SyntaxError, TypeError):
+            return False
+        previous, self.selection = self.selection, applied
+        steps = [p for p in ev.plan if not p.startswith("note:")]
+        return previous == applied and all(p.startswith(_PARAM_STEP) for p in steps)
+
+
+def in_time_order(events: list[m.AdaptationEvent | m.NodeState]) -> list[Any]:
+    """A saved log in time order. The file is appended to by several processes and in the
+    order events reach its writer, not the order they happened: the Run-time Resolution
+    Engine leader records the host agents' node states as they arrive over the bus (after
+    its own adaptation event when a swap's node events queue behind it), a standby writes
+    its own events too, and after a failover the new leader appends to the same file."""
+    return sorted(events, key=lambda ev: ev.stamp)
+
+
+def format_event(ev: m.AdaptationEvent | m.NodeState, *, wide: bool = True) -> str:
+    """An event as text; lines wrapped at `WIDTH` columns unless ``wide``."""
     t = time.strftime("%H:%M:%S", time.localtime(ev.stamp)) + f".{int(ev.stamp % 1 * 1000):03d}"
     match ev:
         case m.NodeState():
             why = f" ({ev.reason})" if ev.reason else ""
-            return f"{t} node  {ev.host}/{ev.node}: {ev.previous} -> {ev.state}{why}"
+            lines = [(f"{t} node  {ev.host}/{ev.node}: {ev.previous} -> {ev.state}{why}", "")]
         case m.AdaptationEvent():
             cause = "; ".join(f"{c.rule}: {c.action}" for c in ev.cause)
             dur = " ".join(f"{k}={v * 1e3:.1f}ms" for k, v in ev.durations.items())
-            out = f"{t} {ev.level.upper():<7} {ev.kind}: {ev.message}"
+            lines = [(f"{t} {ev.level.upper():<7} {ev.kind}: {ev.message}", " " * 21)]
             if cause:
-                out += f"\n    cause: {cause}"
-            for step in ev.plan:
-                out += f"\n    - {step}"
+                lines.append((f"    cause: {cause}", " " * 11))
+            lines += [(f"    - {step}", " " * 6) for step in ev.plan]
             if dur:
-                out += f"\n    durations: {dur}"
-            return out
-    return repr(ev)
+                lines.append((f"    durations: {dur}", " " * 15))
+        case _:
+            return repr(ev)
+    if wide:
+        return "\n".join(text for text, _ in lines)
+    return "\n".join(
+        "\n".join(textwrap.wrap(text, WIDTH, subsequent_indent=indent, break_on_hyphens=False))
+        for text, indent in lines
+    )
 
 
 def run_events(args: argparse.Namespace) -> int:
     enc = msgspec.json.Encoder()
+    shown = EventFilter()
+
+    def show(ev: m.AdaptationEvent | m.NodeState) -> None:
+        if args.all or shown.shows(ev):
+            text = enc.encode(ev).decode() if args.json else format_event(ev, wide=args.wide)
+            print(text, flush=True)
+
     if args.log:
         from rra_agent.engines.events import read_events
 
-        for ev in read_events(args.log):
-            print(enc.encode(ev).decode() if args.json else format_event(ev), flush=True)
+        try:
+            events = read_events(args.log)
+        except OSError as e:
+            raise RraError(f"{args.log}: {e.strerror or e}") from None
+        for ev in in_time_order(events):
+            show(ev)
         return 0
-    if not args.system:
-        raise RraError("give --system to follow a running system, or --log FILE")
     done = threading.Event()
-    with BusClient(bus_from_args(args), args.system) as client:
+    with connect_system(bus_from_args(args), args.system) as client:
+        engine = _engine_status(client, 2.0)
+        if engine is not None:
+            shown.selection = frozenset(engine.get("selection", []))
 
         def on_event(sample: zenoh.Sample) -> None:
             try:
                 ev = _EVT.decode(sample.payload.to_bytes())
             except (msgspec.DecodeError, msgspec.ValidationError):
                 return
-            print(enc.encode(ev).decode() if args.json else format_event(ev), flush=True)
+            show(ev)
 
-        client.session.declare_subscriber(client.keys.events, on_event)
+        if not args.json:
+            hidden = "" if args.all else " (CV updates hidden: --all shows them)"
+            print(f"following system {client.keys.system!r}{hidden}; Ctrl-C to stop", flush=True)
+        hosts: set[str] = set()
+        lock = threading.Lock()
+
+        def on_host(sample: zenoh.Sample) -> None:
+            """The last host agent of the system gone: it stopped, and so does following."""
+            host = str(sample.key_expr).rsplit("/", 1)[-1]
+            with lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    hosts.add(host)
+                elif host in hosts:
+                    hosts.discard(host)
+                    if not hosts:
+                        done.set()
+
+        entities = [
+            client.session.declare_subscriber(client.keys.events, on_event),
+            client.session.liveliness().declare_subscriber(
+                client.keys.host_alive_all, on_host, history=True
+            ),
+        ]
         try:
             done.wait()
         except KeyboardInterrupt:
             return 0
+        finally:
+            for entity in entities:
+                entity.undeclare()
+        if not args.json:
+            print(f"system {client.keys.system!r} stopped: no host agent is left", flush=True)
     return 0
 
 
 def configure_param(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--system", required=True, help="system name (the package's)")
+    add_system_argument(p)
     p.add_argument("node", help="node name")
     p.add_argument("values", nargs="*", metavar="NAME=VALUE", help="values are YAML scalars")
     p.add_argument(
@@ -348,7 +550,7 @@ def engine_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[st
 def run_param(args: argparse.Namespace) -> int:
     """Set parameters of a running node (or print them all when none is given)."""
     values = parse_assignments(args.values)
-    with BusClient(bus_from_args(args), args.system) as client:
+    with connect_system(bus_from_args(args), args.system) as client:
         if values or args.reset:
             result = set_params(client, args.node, values, args.reset)
             params = {**result.get("params", {}), **{n: "(model value)" for n in args.reset}}
@@ -363,7 +565,8 @@ def run_param(args: argparse.Namespace) -> int:
                     interval=0.05,
                 )
             except TimeoutError:
-                raise RraError(f"no running node {args.node!r} in system {args.system!r}") from None
+                system = client.keys.system
+                raise RraError(f"no running node {args.node!r} in system {system!r}") from None
             reply = client.node(args.node, m.Describe())
             if isinstance(reply, m.Err):
                 raise RraError(f"{args.node}: {reply.message}")

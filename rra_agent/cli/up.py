@@ -13,6 +13,7 @@ Logs go to the run folder: one file per process and ``events.jsonl``.
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -20,7 +21,13 @@ from pathlib import Path
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.deployment import Deployment, deploy
-from rra_agent.host.agent import HostAgent, schedule_self, security
+from rra_agent.host.agent import (
+    HostAgent,
+    describe_router,
+    schedule_self,
+    security,
+    state_printer,
+)
 from rra_agent.host.catalog import Catalog
 from rra_agent.models.system import Command, Supervision
 
@@ -111,17 +118,6 @@ def engine_specs(
     return specs
 
 
-def _printer(quiet: bool):
-    def show(st: m.NodeState) -> None:
-        if quiet:
-            return
-        pid = f" pid {st.pid}" if st.pid else ""
-        why = f" ({st.reason})" if st.reason and st.state not in ("RUNNING", "STARTING") else ""
-        print(f"[{time.strftime('%H:%M:%S')}] {st.node:<24} {st.state}{pid}{why}", flush=True)
-
-    return show
-
-
 def run(args: argparse.Namespace) -> int:
     names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
     dep = deploy(args.package, names)
@@ -129,7 +125,27 @@ def run(args: argparse.Namespace) -> int:
     bus.host_router(hub=True)  # a refused endpoint fails here, before the run folder exists
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
+    #: The folders this run makes (removed again if the hub cannot even start).
+    made = [p for p in (run_dir, *run_dir.parents) if not p.exists()]
     run_dir.mkdir(parents=True, exist_ok=True)
+    started: list[bool] = []
+    try:
+        return _run(args, dep, names, bus, run_dir, started)
+    finally:
+        if not started:  # nothing ran (e.g. the hub's port is taken): no empty run folder
+            for folder in made:
+                shutil.rmtree(folder, ignore_errors=True)
+
+
+def _run(
+    args: argparse.Namespace,
+    dep: Deployment,
+    names: list[str],
+    bus: BusConfig,
+    run_dir: Path,
+    started: list[bool],
+) -> int:
+    """Run the system with its run folder made; ``started`` gets an item once it starts."""
     # A new run starts from the default selection; the engine's state file only carries the
     # applied selection across a restart of the engine *within* a run.
     (run_dir / "resolution-state.json").unlink(missing_ok=True)
@@ -157,16 +173,17 @@ def run(args: argparse.Namespace) -> int:
         catalog=catalog,
         **security(args, dep, args.host),
     )
-    agent.observers.append(_printer(args.quiet))
+    agent.observers.append(state_printer(quiet=args.quiet))
 
     def start_engines() -> None:
+        started.append(True)
         for spec in specs:
             agent.handle(m.StartNode(spec=spec))
         if not args.quiet:
-            hub = bus.connect[0] if bus.connect else "?"
             print(
-                f"rra up: system {dep.system!r} ({', '.join(sorted(dep.selection))}) "
-                f"on {hub}; logs in {run_dir}; Ctrl-C to stop",
+                f"rra up: system {dep.system!r} ({', '.join(sorted(dep.selection))}) on host "
+                f"{args.host}, its router {describe_router(agent.session_bus)} (the tools' "
+                f"--connect {bus.hub}); logs in {run_dir}; Ctrl-C to stop",
                 flush=True,
             )
 

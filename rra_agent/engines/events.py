@@ -2,10 +2,15 @@
 
 Each line of the log is one `AdaptationEvent` or `NodeState` as JSON (with its ``"t"`` tag),
 flushed as written, so ``tail -f`` and ``rra events`` follow it live and a crash loses nothing.
+Lines are in the order they reach their writer, not in time order (several processes append
+and node states arrive over the bus): ``rra events --log`` sorts them by ``stamp``.
+
+`phase_durations` computes an adaptation's phase timings (its event's ``durations``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 from typing import IO
 
@@ -57,3 +62,40 @@ def read_events(path: str | Path) -> list[m.AdaptationEvent | m.NodeState]:
         except msgspec.DecodeError:
             continue
     return out
+
+
+def phase_durations(
+    reads: Iterable[float],
+    decided: float,
+    received: float,
+    plan: float,
+    execute: float,
+    switch: float | None = None,
+) -> dict[str, float]:
+    """The phases of one adaptation, in seconds (an `AdaptationEvent`'s ``durations``).
+
+    ``reads``: the stamps of the context values the fired rules read (each when the Context
+    Monitor computed it); ``decided``: the selection's stamp (the Adaptation Engine);
+    ``received``: when the Run-time Resolution Engine got it; ``plan`` and ``execute``: how
+    long it planned and executed; ``switch``: from the start of execution until the
+    swapped-in nodes were switched to.
+
+    The trigger is the newest value the rules read: the Adaptation Engine evaluates on every
+    new value, so the evaluation that changed the decision is the one the newest value
+    started. Older values (a flag set minutes ago, read again by every evaluation) are not
+    the trigger. Without any value read (an operator's selection) the trigger is the decision.
+    ``total`` runs from the trigger to the end of execution: ``decide + deliver + plan +
+    execute``. Clocks of different hosts may disagree: no phase is negative.
+    """
+    stamps = list(reads)
+    trigger = max(stamps) if stamps else decided
+    durations = {
+        "decide": max(0.0, decided - trigger),
+        "deliver": max(0.0, received - decided),
+        "plan": plan,
+        "execute": execute,
+    }
+    durations["total"] = max(0.0, received - trigger) + plan + execute
+    if switch is not None:
+        durations["switch"] = switch
+    return durations

@@ -52,7 +52,7 @@ from rra_agent.core.rules import clamp_cv
 from rra_agent.deployment import Deployment
 from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
-from rra_agent.engines.events import EventSink
+from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Executor, Outcome, spec_for
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.errors import RraError
@@ -450,7 +450,14 @@ class ResolutionEngine(EngineProcess):
             time.sleep(EMULATED_DELAY)  # benchmarks only: a slower pipeline, like the paper's
         outcome = self.executor.execute(plan)
         t_end = time.perf_counter()
-        durations = _durations(msg, t_recv, t0, t_plan, t_end, outcome)
+        durations = phase_durations(
+            (t for f in msg.cause for t in f.reads.values()),
+            decided=msg.stamp,
+            received=t_recv,
+            plan=t_plan - t0,
+            execute=t_end - t_plan,
+            switch=outcome.first_switch,
+        )
         if outcome.ok:
             self.current, self.selection, self.cv, self.failed = target, selection, cv, None
             self.applied = msg.seq
@@ -887,23 +894,6 @@ def _observed(st: m.NodeState) -> dict[str, Any]:
         "active": st.active,
         "implementation": st.implementation,
     }
-
-
-def _durations(
-    msg: m.Selection, t_recv: float, t0: float, t_plan: float, t_end: float, outcome: Outcome
-) -> dict[str, float]:
-    reads = [t for f in msg.cause for t in f.reads.values()]
-    durations = {
-        "decide": max(0.0, msg.stamp - max(reads)) if reads else 0.0,
-        "deliver": max(0.0, t_recv - msg.stamp),
-        "plan": t_plan - t0,
-        "execute": t_end - t_plan,
-    }
-    if reads:
-        durations["total"] = max(0.0, t_recv + (t_end - t0) - min(reads))
-    if outcome.first_switch is not None:
-        durations["switch"] = outcome.first_switch
-    return durations
 
 
 def main(argv: list[str] | None = None) -> int:

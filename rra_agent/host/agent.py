@@ -44,7 +44,7 @@ import zenoh
 
 from rra_agent import trace
 from rra_agent.bus import messages as m
-from rra_agent.bus.config import BusConfig, node_zid
+from rra_agent.bus.config import BusConfig, explain_open_failure, node_zid
 from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
 from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
@@ -87,6 +87,8 @@ class HostAgent:
     ) -> None:
         self.keys = Keys(system)
         self.host = check_chunk(host, "host")
+        #: This agent's router is the hub (``rra up``): the tools' endpoint.
+        self.hub = hub
         #: This host's Zenoh router (run by this agent) and how its children connect to it.
         router = bus.host_router(hub=hub)
         self.bus = router.local_client()
@@ -124,6 +126,8 @@ class HostAgent:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._interrupts = 0
+        #: Stopping every node (a normal shutdown): no node is started any more.
+        self.stopping = False
         #: A host other than the first learns the run's Rerun configuration from the engine.
         self._rerun_known = hub
         self.log_dir = Path(log_dir)
@@ -214,7 +218,7 @@ class HostAgent:
             return
         self.counters.received += 1
         if isinstance(req, m.Ping):  # answered here: a probe must not wait behind work
-            query.reply(query.key_expr, _REPLY.encode(m.Ok(result={"pid": os.getpid()})))
+            query.reply(query.key_expr, _REPLY.encode(m.Ok(result=self.identity())))
             return
         if not self.loop.post(lambda: self._serve(query, req)):
             self._answer_now(query, "busy", "the host agent is overloaded; try again")
@@ -356,6 +360,8 @@ class HostAgent:
             )
         match req:
             case m.StartNode(spec=spec):
+                if self.stopping:  # e.g. a standby engine taking over as the leader stops
+                    return m.Err(message=f"host {self.host} is shutting down", code="busy")
                 return self._start(spec)
             case m.StopNode(node=name):
                 return self._stop(name)
@@ -482,6 +488,15 @@ class HostAgent:
             for name, p in [*self.supervisor.procs.items(), *self.members.members.items()]
         ]
 
+    def identity(self) -> dict[str, Any]:
+        """Its answer to a ``Ping``: pid, host and its router's endpoints (``rra status``)."""
+        return {
+            "pid": os.getpid(),
+            "host": self.host,
+            "listen": list(self.session_bus.listen),
+            "connect": list(self.session_bus.connect),
+        }
+
     def stats(self) -> m.ProcessStats:
         c = self.counters
         c.extra.update(
@@ -533,7 +548,12 @@ class HostAgent:
                 f"{', '.join(exposed)}; anyone who reaches them can run this system",
                 flush=True,
             )
-        self.session = session = open_session(self.session_bus)
+        try:
+            session = open_session(self.session_bus)
+        except zenoh.ZError as e:  # e.g. the port is taken: one line, nothing left running
+            self.local.kill_all()
+            raise explain_open_failure(e, self.session_bus, hub=self.hub) from None
+        self.session = session
         try:
             self._publisher = session.declare_publisher(
                 self.keys.events,
@@ -565,6 +585,7 @@ class HostAgent:
         """Stop every node with the escalation policy; wait until all have exited (the
         components in containers with their containers, which unload them first)."""
         sup = self.supervisor
+        self.stopping = True
         for name in list(self.members.members):
             self.members.stop(name, self.clock())
         sup.stop_all(self.clock())
@@ -593,6 +614,26 @@ def security(args, dep, host: str) -> dict[str, Any]:  # argparse.Namespace, Dep
     return {"certs": args.certs, "access_control": access_control(dep, host)}
 
 
+def state_printer(prefix: str = "", quiet: bool = False) -> Callable[[m.NodeState], None]:
+    """An observer printing each node-state change as one line (``rra up``, ``rra agent``)."""
+
+    def show(st: m.NodeState) -> None:
+        if quiet:
+            return
+        pid = f" pid {st.pid}" if st.pid else ""
+        why = f" ({st.reason})" if st.reason and st.state not in ("RUNNING", "STARTING") else ""
+        line = f"{st.node:<24} {st.state}{pid}{why}"
+        print(f"[{time.strftime('%H:%M:%S')}] {prefix}{line}", flush=True)
+
+    return show
+
+
+def describe_router(bus: BusConfig) -> str:
+    """``listens on A, B; linked to C``: a host agent's router endpoints, for its banner."""
+    out = f"listens on {', '.join(bus.listen)}"
+    return out + (f"; linked to {', '.join(bus.connect)}" if bus.connect else "")
+
+
 def configure(parser) -> None:  # argparse.ArgumentParser
     from rra_agent.bus.config import add_bus_arguments
 
@@ -612,6 +653,7 @@ def configure(parser) -> None:  # argparse.ArgumentParser
         "manifest's): the model this host runs components of",
     )
     parser.add_argument("--log-dir", default="rra-logs", help="node logs go here")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     parser.add_argument(
         "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
     )
@@ -648,7 +690,21 @@ def run(args) -> int:  # argparse.Namespace
         catalog=catalog,
         **security(args, dep, args.host),
     )
-    agent.run()
+    quiet = getattr(args, "quiet", False)
+    agent.observers.append(state_printer(quiet=quiet))
+
+    def banner() -> None:
+        if not quiet:
+            print(
+                f"rra agent: host {args.host} of system {dep.system!r}; its router "
+                f"{describe_router(agent.session_bus)}; logs in "
+                f"{Path(args.log_dir).resolve()}; Ctrl-C to stop",
+                flush=True,
+            )
+
+    agent.run(on_ready=banner)
+    if not quiet:
+        print(f"rra agent: host {args.host}: all processes stopped", flush=True)
     return 0
 
 

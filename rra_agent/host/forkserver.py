@@ -296,7 +296,9 @@ def _redirect(log_path: str) -> None:
 
 # ---- the host agent side ---------------------------------------------------------------------
 def _zygote_setup():
-    """The zygote dies with its host agent and runs with the agent's own scheduling: a
+    """The zygote dies with its host agent, in a process group of its own (with its nodes:
+    a Ctrl-C in the terminal reaches only the host agent, which stops them), and runs with
+    the agent's own scheduling: a
     real-time host agent (``agents`` in rra.yaml) must not wait on a fork server starved by
     the real-time nodes it started. The zygote's children start as normal processes
     (SCHED_RESET_ON_FORK) and take their own scheduling from the model."""
@@ -307,6 +309,7 @@ def _zygote_setup():
 
     def setup() -> None:
         die_with_parent()
+        os.setpgid(0, 0)  # it and its nodes: not reached by a Ctrl-C of the host agent's
         if realtime:
             scheduling.apply(msgspec.structs.replace(own, cpus=[]), reset_on_fork=True)
 

@@ -45,11 +45,14 @@ Prober = Callable[[str, int, float], None]
 
 
 def _preexec(spec: NodeSpec) -> Callable[[], None]:
-    """In the exec'd child, before the exec: die with the host agent, take the component's
-    scheduling (a refusal goes to the node's log, which is already its stderr)."""
+    """In the exec'd child, before the exec: die with the host agent, a process group of
+    its own (a Ctrl-C in the terminal reaches the host agent only, which stops its nodes in
+    order; not every node at once, behind its back), take the component's scheduling (a
+    refusal goes to the node's log, which is already its stderr)."""
 
     def setup() -> None:
         die_with_parent()
+        os.setpgid(0, 0)
         for problem in scheduling.apply(spec.scheduling):
             os.write(2, f"rra node {spec.name}: scheduling: {problem}\n".encode())
 

@@ -11,6 +11,7 @@ States (as in Supervisor, plus one for a suspected freeze)::
     any failure beyond the restart budget (max_restarts in restart_window) --> FATAL
     FATAL --cool-down elapsed--> STARTING (the budget starts afresh)
     any live state --stop--> STOPPING: SIGINT, then SIGTERM, then SIGKILL --exit--> STOPPED
+    (a STARTING one: SIGTERM, then SIGKILL: it may not handle SIGINT yet)
 
 How failures are told from a slow observer (docs/architecture.md, failure model):
 
@@ -354,9 +355,14 @@ class Supervisor:
         self._set(p, State.STARTING, now, reason)
 
     def _begin_stop(self, p: Proc, now: float, reason: str) -> None:
-        p.escalation = [signal.SIGTERM, signal.SIGKILL]
+        # A process still starting may not have its handlers yet: a SIGINT would interrupt
+        # its imports (a KeyboardInterrupt traceback in its log). SIGTERM ends it silently
+        # then, and is handled like SIGINT once the node runs.
+        starting = p.state == State.STARTING
+        first = signal.SIGTERM if starting else signal.SIGINT
+        p.escalation = [signal.SIGKILL] if starting else [signal.SIGTERM, signal.SIGKILL]
         if p.pid is not None:
-            p.host.signal(p.pid, signal.SIGINT)
+            p.host.signal(p.pid, first)
         p.deadline = now + self.stop_policy.sigint_timeout
         self._set(p, State.STOPPING, now, reason)
 

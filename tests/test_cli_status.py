@@ -1,0 +1,276 @@
+"""`rra status`, `rra events` and `rra param` of a running system, as a new user runs them.
+
+They find the system without ``--system`` when one runs at the endpoint (and list the
+systems when several do), list the host agents with their router endpoints and node counts,
+fit in 100 columns (``--wide`` for the rest; ``--json`` complete); ``rra events`` hides the
+CV updates unless ``--all``, prints a saved log in time order, and its phase totals run
+from the triggering context value to the end of execution. On a machine whose two cores are
+busy, a running system is still found (no false "no system").
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import msgspec
+import pytest
+from conftest import ROOT, wait_until
+from test_secure_system import secure  # noqa: F401 (the fixture)
+
+from rra_agent.bus import messages as m
+from rra_agent.cli import main
+from rra_agent.cli.status import WIDTH, EventFilter, format_event
+from rra_agent.engines.events import phase_durations
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+# ---- a running system -----------------------------------------------------------------------
+def test_status_finds_the_one_system_lists_hosts_and_fits(system, bus, capsys) -> None:
+    system()
+    ep = bus.connect[0]
+    rc, out, err = run(["status", "--connect", ep], capsys)
+    assert rc == 0, err
+    assert out.startswith("system      relay_system (Relay)"), out
+    assert max(len(line) for line in out.splitlines()) <= WIDTH, out
+    host = next(line for line in out.splitlines() if line.startswith("local "))
+    fields = host.split()
+    assert fields[1] == "up" and int(fields[2]) >= 9, host  # 6 engine replicas, 3 components
+    assert f"listens {ep}" in host
+
+    rc, wide, _ = run(["status", "--connect", ep, "--wide"], capsys)
+    assert rc == 0 and "IMPLEMENTATION" in wide
+    source = next(line for line in wide.splitlines() if line.startswith("source "))
+    assert source.endswith("  rra_agent.nodes.generic.Ticker") and len(source) > WIDTH
+    assert "rra_agent.nodes.generic" not in out
+
+    rc, raw, _ = run(["status", "--connect", ep, "--json"], capsys)
+    status = json.loads(raw)
+    assert {a["host"]: a["listen"] for a in status["host_agents"]} == {"local": [ep]}
+    source = next(n for n in status["nodes"] if n["node"] == "source")
+    assert source["implementation"] == "rra_agent.nodes.generic.Ticker"
+    assert status["stats"] and status["engine"]["running"]
+
+
+def test_several_systems_at_one_endpoint_are_listed(system, bus, capsys) -> None:
+    s = system()
+    ep = bus.connect[0]
+    # Another system's host agent on the same hub (its liveliness token is all it takes).
+    token = s.client.session.liveliness().declare_token("rra/other_system/hostagent/h2")
+    try:
+        wait_until(lambda: main(["status", "--connect", ep]) == 1, 10, "the second system")
+        for cmd in (["status"], ["events"], ["param", "source"]):
+            capsys.readouterr()
+            assert main([*cmd, "--connect", ep]) == 1
+            err = capsys.readouterr().err.strip()
+            assert err == (
+                f"rra {cmd[0]}: 2 systems run at {ep} (other_system, relay_system): choose "
+                "one with --system NAME"
+            )
+        rc, out, _ = run(["status", "--connect", ep, "--system", "relay_system"], capsys)
+        assert rc == 0 and "relay_system" in out
+        rc, _, err = run(["status", "--connect", ep, "--system", "nope"], capsys)
+        assert rc == 1
+        assert err.strip() == f"rra status: no rra system 'nope' answers at {ep}; start one " \
+            "with `rra up PKG` or give --connect ENDPOINT"  # fmt: skip
+    finally:
+        token.undeclare()
+
+
+def test_param_without_system(system, bus, capsys) -> None:
+    system()
+    rc, out, err = run(["param", "source", "--connect", bus.connect[0]], capsys)
+    assert rc == 0, err
+    assert "value = " in out
+
+
+def test_a_busy_machine_still_finds_the_system(system, bus, hog, capsys) -> None:
+    """Both cores busy: every ``rra status`` finds the running system (no false negative)."""
+    system()
+    for _ in range(5):
+        rc, out, err = run(["status", "--connect", bus.connect[0]], capsys)
+        assert rc == 0, err
+        assert "relay_system" in out
+
+
+# ---- rra events -----------------------------------------------------------------------------
+def test_events_shows_swaps_not_cv_updates(system, bus, tmp_path: Path) -> None:
+    s = system()
+    ep = bus.connect[0]
+    shown = tmp_path / "events.out"
+    with shown.open("wb") as out:
+        follower = subprocess.Popen(
+            [sys.executable, "-m", "rra_agent", "events", "--connect", ep],
+            stdout=out, stderr=subprocess.STDOUT, cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )  # fmt: skip
+    try:
+        wait_until(lambda: "following system 'relay_system'" in shown.read_text(), 30,
+                   "rra events following")  # fmt: skip
+        for level in (2.0, 3.0, 7.0):  # two CV updates (Gain), then a swap (Filtered)
+            s.set_level(level)
+            s.wait(lambda st, v=level: st["engine"]["cv"].get("Gain") == v, f"Gain {level}")
+        wait_until(lambda: "start filtered" in shown.read_text(), 15, "the swap shown")
+    finally:
+        follower.send_signal(signal.SIGINT)
+        follower.wait(10)
+    text = shown.read_text()
+    assert "Traceback" not in text
+    assert "param: operator set source" in text
+    assert text.count("applied selection") == 1, text  # the swap; not the two CV updates
+    assert "node  local/filtered: STOPPED -> STARTING" in text
+
+    log = str(s.run_dir / "events.jsonl")
+    default = run_rra_out("events", "--log", log)
+    everything = run_rra_out("events", "--log", log, "--all")
+    applied = [
+        e
+        for e in s.events()
+        if isinstance(e, m.AdaptationEvent) and e.kind == "adaptation" and e.outcome == "ok"
+    ]
+    assert everything.count("applied selection") == len(applied) >= 3
+    # Shown by default: the first deployment and the swap (the CV updates are not).
+    assert default.count("applied selection") == 2, default
+    swap = next(e for e in applied if any(p.startswith("start filtered") for p in e.plan))
+    d = swap.durations
+    assert d["total"] == pytest.approx(d["decide"] + d["deliver"] + d["plan"] + d["execute"])
+
+
+def run_rra_out(*args: str) -> str:
+    r = subprocess.run([sys.executable, "-m", "rra_agent", *args], capture_output=True,
+                       text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                       timeout=60, check=True)  # fmt: skip
+    return r.stdout
+
+
+def node_state(stamp: float, node: str, state: str) -> m.NodeState:
+    return m.NodeState(stamp=stamp, node=node, host="local", state=state)  # type: ignore[arg-type]
+
+
+def applied(stamp: float, features: list[str], *plan: str) -> m.AdaptationEvent:
+    return m.AdaptationEvent(
+        stamp=stamp,
+        kind="adaptation",
+        message=f"applied selection {sorted(features)}, {len(plan)} step(s)",
+        outcome="ok",
+        plan=list(plan),
+    )
+
+
+def test_a_saved_log_is_printed_in_time_order(tmp_path: Path, capsys) -> None:
+    """events.jsonl is appended to in arrival order by several processes: a swap's node
+    states reach the leader after its own adaptation event; a standby writes its own."""
+    t = 1000.0
+    written = [
+        applied(t + 0.050, ["B"], "stop a (1.0 ms) ok", "start b (2.0 ms) ok"),
+        node_state(t + 0.010, "a", "STOPPING"),
+        node_state(t + 0.020, "a", "STOPPED"),
+        node_state(t + 0.030, "b", "STARTING"),
+        m.AdaptationEvent(stamp=t, kind="takeover", message="resolution-b leads"),
+        node_state(t + 0.040, "b", "RUNNING"),
+    ]
+    log = tmp_path / "events.jsonl"
+    log.write_bytes(b"".join(msgspec.json.encode(e) + b"\n" for e in written))
+    rc, out, _ = run(["events", "--log", str(log), "--json"], capsys)
+    assert rc == 0
+    stamps = [json.loads(line)["stamp"] for line in out.splitlines()]
+    assert stamps == sorted(e.stamp for e in written)
+
+
+def test_the_filter_hides_only_cv_updates() -> None:
+    f = EventFilter(["A"])
+    kept = [
+        applied(1.0, ["A"], "set_params sink  (1.0 ms) ok"),  # a CV update: hidden
+        applied(2.0, ["B"], "set_params sink  (1.0 ms) ok"),  # a new selection: shown
+        applied(3.0, ["B"], "stop a (1.0 ms) ok", "start b (1.0 ms) ok"),  # a swap: shown
+        applied(4.0, ["B"]),  # nothing to do, same selection: hidden
+        m.AdaptationEvent(stamp=5.0, kind="conflict", message="rules R1, R2 disagree"),
+        m.AdaptationEvent(stamp=6.0, kind="override", message="operator forces X on"),
+        m.AdaptationEvent(stamp=7.0, kind="param", message="operator set sink"),
+        m.AdaptationEvent(
+            stamp=8.0,
+            kind="adaptation",
+            message="adaptation failed, rolled back: boom",
+            level="error",
+            outcome="rolled_back",
+        ),
+        node_state(9.0, "b", "BACKOFF"),
+    ]
+    assert [e.stamp for e in kept if f.shows(e)] == [2.0, 3.0, 5.0, 6.0, 7.0, 8.0, 9.0]
+    # Following from an unknown selection: the first applied adaptation is shown.
+    assert EventFilter().shows(applied(1.0, ["A"], "set_params sink  (1.0 ms) ok"))
+
+
+def test_events_fit_in_100_columns_unless_wide() -> None:
+    ev = applied(1.0, [f"Feature{i}" for i in range(30)], "set_params sink  (1.0 ms) ok")
+    ev = msgspec.structs.replace(
+        ev,
+        cause=[m.FiredRule(rule=f"Rule{i}", action="activate_feature(F)") for i in range(20)],
+        durations={"decide": 0.001, "total": 0.002},
+    )
+    narrow, wide = format_event(ev, wide=False), format_event(ev, wide=True)
+    assert max(map(len, narrow.splitlines())) <= WIDTH
+    assert max(map(len, wide.splitlines())) > WIDTH
+    assert narrow.split() == wide.split()  # the same words, only wrapped
+
+
+# ---- phase totals ---------------------------------------------------------------------------
+def test_the_total_runs_from_the_newest_value_read() -> None:
+    """A rule read a flag set 3.4 s ago and a value computed 10 ms before the decision: the
+    trigger is the new value, not the old flag (the total was 3.4 s)."""
+    t = 1000.0
+    d = phase_durations(
+        [t - 3.4, t - 0.010], decided=t, received=t + 0.002, plan=0.001, execute=0.020
+    )
+    assert d["decide"] == pytest.approx(0.010)
+    assert d["deliver"] == pytest.approx(0.002)
+    assert d["total"] == pytest.approx(0.033)
+    assert d["total"] == pytest.approx(d["decide"] + d["deliver"] + d["plan"] + d["execute"])
+
+
+def test_the_total_without_values_read_starts_at_the_decision() -> None:
+    t = 1000.0
+    d = phase_durations([], decided=t, received=t + 0.002, plan=0.001, execute=0.020, switch=0.01)
+    assert d == pytest.approx(
+        {
+            "decide": 0.0,
+            "deliver": 0.002,
+            "plan": 0.001,
+            "execute": 0.020,
+            "total": 0.023,
+            "switch": 0.01,
+        }
+    )
+
+
+def test_phases_are_never_negative_across_clocks() -> None:
+    t = 1000.0  # a value stamped by a host whose clock is ahead
+    d = phase_durations([t + 0.5], decided=t, received=t - 0.001, plan=0.001, execute=0.002)
+    assert min(d.values()) >= 0.0
+
+
+def test_an_operator_with_certificates_names_the_system(secure, capsys) -> None:  # noqa: F811
+    """With --certs, the hub's access control lets an operator see its own system's keys
+    only, so a system is not found unless named: the line says so; named, it is found."""
+    endpoint, certs, _ = secure
+    args = ["--certs", str(certs / "operator"), "--connect", endpoint]
+    rc, _, err = run(["status", *args], capsys)
+    assert rc == 1
+    assert err.strip().endswith("give --system NAME"), err
+
+    def engine_up() -> str | None:
+        rc, out, err = run(["status", *args, "--system", "relay_system"], capsys)
+        assert rc == 0, err
+        return out if out.startswith("system      relay_system (Relay)") else None
+
+    out = wait_until(engine_up, 60, "the engine's status", interval=0.2)
+    assert any(line.split()[:2] == ["local", "up"] for line in out.splitlines()), out

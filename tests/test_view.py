@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -136,6 +137,56 @@ def test_every_sample_is_on_the_simulation_timeline(tmp_path, monkeypatch):
     assert missing == [], f"temporal data without {SIM}: {missing}"
 
 
+def sim_times(path: Path, entity: str) -> list[float]:
+    """The ``sim_time`` values (s) of an entity's temporal rows."""
+    from rerun.chunk import RrdReader
+
+    out: list[float] = []
+    for chunk in RrdReader(path).stream().to_chunks():
+        if chunk.entity_path == entity and not chunk.is_static:
+            column = chunk.to_record_batch().column(SIM).cast("int64").to_pylist()
+            out += [ns / 1e9 for ns in column]
+    return sorted(out)
+
+
+def test_a_simulation_clock_is_placed_on_the_run_time_axis(tmp_path):
+    """Engines stamp the seconds since the run started; the simulator's physics clock starts
+    at its first sample's run time, so a fault and its adaptation line up."""
+    config = recording.RerunConfig.new("save", "quad", dir=str(tmp_path / "rec"))
+    t0 = config.t0
+    env = {ENV_VAR: config.to_env()}
+    sim, engine = open_logger("sim", env), open_logger("engine", env)
+    assert sim is not None and engine is not None
+    for i in range(3):  # the simulator armed 5 s into the run; physics time starts at 0
+        sim.scalar("/vehicle/x", 1.0, sim_time=i * 0.5, wall_time=t0 + 5.0 + i * 0.5)
+    engine.measurement("WorkingMotors", 3, t0 + 5.5)
+    sim.close()
+    engine.close()
+    assert sim_times(sim.path, "/vehicle/x") == pytest.approx([5.0, 5.5, 6.0])
+    assert sim_times(engine.path, "/context/WorkingMotors") == pytest.approx([5.5])
+
+
+def test_the_merged_recording_is_compacted_into_few_chunks(tmp_path):
+    """Many small chunks (a process flushes every 0.1 s) made the web viewer take 45-90 s
+    for the 4 MB demo recording: `finish` compacts them (``rrd optimize``)."""
+    from rerun.chunk import RrdReader
+
+    def chunks(path: Path) -> int:
+        return len(RrdReader(path).stream().to_chunks())
+
+    out = tmp_path / "x.rrd"
+    config, _ = recording.rerun_option(["save", str(out)], "x", tmp_path / "run")
+    log = open_logger("p", {ENV_VAR: config.to_env()})
+    assert log is not None
+    for i in range(200):  # one chunk per sample, as a slow stream of samples gives
+        log.scalar("/x", float(i), sim_time=i * 0.01)
+        log.flush()
+    log.close()
+    assert log.path is not None and chunks(log.path) >= 200
+    recording.finish(config, out)
+    assert chunks(out) <= 5
+
+
 def test_layout_of_the_example_packages():
     quad = layout_of(load_package(ROOT / "scenarios" / "quadcopter"))
     assert quad.vehicle and not quad.floor_map
@@ -211,11 +262,11 @@ def test_view_runs_the_environments_rerun_not_one_on_path(tmp_path, monkeypatch)
     rrd = tmp_path / "x.rrd"
     cmd = view.viewer_command(rrd, web=False, port=9090, grpc_port=0)
     exe = Path(cmd[0])
-    assert cmd == [str(exe), str(rrd)] and exe != impostor
+    assert cmd == [str(exe), str(rrd), "--bind", "127.0.0.1"] and exe != impostor
     spec = importlib.util.find_spec("rerun_cli")
     assert spec is not None and exe.parent == Path(next(iter(spec.submodule_search_locations)))
     web = view.viewer_command(rrd, web=True, port=8123, grpc_port=8124)
-    assert web[2:] == ["--web-viewer", "--bind", "127.0.0.1", "--web-viewer-port", "8123",
+    assert web[2:] == ["--bind", "127.0.0.1", "--web-viewer", "--web-viewer-port", "8123",
                        "--port", "8124"]  # fmt: skip
     monkeypatch.setattr(recording, "venv_rerun", lambda: None)
     monkeypatch.setattr(view, "venv_rerun", lambda: None)
@@ -261,12 +312,16 @@ def test_view_web_serves_on_loopback_only_and_leaves_nothing(tmp_path, procs):
         pytest.fail(procs.log("view"))
     assert b"Rerun" in body
     assert listeners(port) == {"0100007F"}  # 127.0.0.1, nothing else
-    assert f"at http://127.0.0.1:{port}/?url=" in procs.log("view")
+    found = re.search(rf"at http://127\.0\.0\.1:{port}/\?url=.*127\.0\.0\.1%3A(\d+)%2F",
+                      procs.log("view"))  # fmt: skip
+    assert found, procs.log("view")
+    grpc = int(found.group(1))
+    assert listeners(grpc) == {"0100007F"}  # the viewer's data server, too
     proc.send_signal(signal.SIGTERM)
     proc.wait(10)
     children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True)
     assert children.stdout == ""
-    assert not listeners(port)
+    assert not listeners(port) and not listeners(grpc)
 
 
 # ---- tools/render_rrd.py ----------------------------------------------------------------------

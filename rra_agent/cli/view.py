@@ -13,9 +13,10 @@ What is opened:
   else the newest ``*.rrd`` in the folder;
 - nothing: the newest recording of the run folders under ``.rra/``, else ``demo.rrd``.
 
-``--web`` serves the web viewer on 127.0.0.1 only (``--port``, default 9090; its gRPC server
-on a free port) and prints the address to open. The viewer process replaces this one
-(``exec``), so Ctrl-C or a signal stops it and leaves nothing behind.
+The viewer's servers listen on 127.0.0.1 only. ``--web`` serves the web viewer (``--port``,
+default 9090; its gRPC server on a free port) and prints the address to open. The viewer
+process replaces this one (``exec``), so Ctrl-C or a signal stops it and leaves nothing
+behind.
 """
 
 from __future__ import annotations
@@ -104,12 +105,11 @@ def resolve_recording(target: str | None, cwd: Path | None = None) -> Path:
 
 def viewer_command(recording: Path, *, web: bool, port: int, grpc_port: int) -> list[str]:
     """The command line that opens ``recording``."""
-    cmd = [rerun_binary(), str(recording)]
+    # The viewer's own gRPC server (native too) listens on loopback only.
+    cmd = [rerun_binary(), str(recording), "--bind", "127.0.0.1"]
     if web:
         cmd += [
             "--web-viewer",
-            "--bind",
-            "127.0.0.1",
             "--web-viewer-port",
             str(port),
             "--port",

@@ -68,7 +68,9 @@ def rerun_option(
     if mode == "connect":
         url = rest[0] if rest else DEFAULT_URL
         if not viewer_reachable(url):
-            raise ValueError(f"no Rerun viewer at {url} (start one first: `rerun`)")
+            raise ValueError(
+                f"no Rerun viewer at {url} (start one first: `{venv_rerun() or 'rerun'}`)"
+            )
         return RerunConfig.new("connect", system, url=url), None
     out = Path(rest[0]) if rest else run_dir / "recording.rrd"
     out = out.resolve()

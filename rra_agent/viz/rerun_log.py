@@ -40,7 +40,7 @@ Entity tree (names are escaped path parts)::
     /cv/<attribute>               Scalars, the Continuous Variability values            adaptation
     /events                       TextLog with level: adaptation events (plan steps,    resolution
                                   phase durations; DEBUG for a CV-only adaptation)
-    /timing/<phase>               Scalars drawn as points: phase durations in ms        resolution
+    /timing/<phase>               Scalars drawn as points: an adaptation's phases (ms)  resolution
     /nodes/<node>/state           TextLog with level: STARTING, RUNNING pid 12, ...     resolution
     /nodes/<node>/running         Scalars 1 running / 0.5 standby (inactive) / 0 not    resolution
     /world/vehicle                Transform3D: the body pose in the world frame         simulator
@@ -468,8 +468,9 @@ class Logger:
 
     @_safe
     def event(self, ev: AdaptationEvent) -> None:
-        """An adaptation event: a line of ``/events`` (with its plan steps) and its phase
-        durations at ``/timing/<phase>`` (ms)."""
+        """An adaptation event: a line of ``/events`` (with its plan steps and phase
+        durations) and, for an adaptation that changed features, its phase durations at
+        ``/timing/<phase>`` (ms)."""
         rr = self.rr
         head = f"{ev.kind}: {ev.message}" + (f" [{ev.outcome}]" if ev.outcome else "")
         phases = ", ".join(f"{p} {s * 1000.0:.1f} ms" for p, s in ev.durations.items())
@@ -482,7 +483,12 @@ class Logger:
             self._last_applied = applied
         self._at(None, ev.stamp)
         self.rec.log("/events", rr.TextLog("\n".join(lines), level=level))
-        for phase, seconds in sorted(ev.durations.items()):
+        # The phases of the adaptations that changed features only: a deployment's seconds
+        # would flatten them, and CV-only adaptations (every tick) bury them; the durations
+        # of every event are in its line of /events.
+        structural = ev.kind == "adaptation" and level != "DEBUG"
+        timed = ev.durations.items() if structural else ()
+        for phase, seconds in sorted(timed):
             path = f"/timing/{self._part(phase)}"
             if path not in self._named:  # a few samples per run: points, not lines
                 self._named.add(path)

@@ -31,6 +31,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -83,11 +84,16 @@ def rerun_option(
     return config, out
 
 
+#: The blueprint children of `attach_blueprint` (their waiters); `finish` waits for them.
+_blueprints: list[threading.Thread] = []
+
+
 def attach_blueprint(config: RerunConfig, package: SystemPackage) -> None:
     """Give the recording its views: the package's limits and choices into ``config``
     (`rra_agent.viz.blueprint.describe`) and the blueprint sent by a child process (it
     imports rerun, which this process must not: the processes it forks would inherit it).
-    A failure is a warning on stderr: the run goes on without the designed views."""
+    The child runs while the system starts (~1 s); `finish` waits for it. A failure is a
+    warning on stderr: the run goes on without the designed views."""
     if config.mode == "off":
         return
     from rra_agent.viz import blueprint
@@ -95,14 +101,26 @@ def attach_blueprint(config: RerunConfig, package: SystemPackage) -> None:
     blueprint.describe(config, blueprint.layout_of(package))
     cmd = [sys.executable, "-m", "rra_agent.viz.blueprint", str(package.root)]
     env = {**os.environ, ENV_VAR: config.to_env(), "RERUN_ANALYTICS": "0"}
-    try:
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
-    except subprocess.TimeoutExpired:
-        print("rra up: rerun: no blueprint (timed out after 60 s)", file=sys.stderr)
-        return
-    if proc.returncode != 0:
-        why = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
-        print(f"rra up: rerun: no blueprint ({why})", file=sys.stderr)
+    proc = subprocess.Popen(
+        cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+    def wait() -> None:
+        try:
+            _, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            print("rra up: rerun: no blueprint (timed out after 60 s)", file=sys.stderr)
+            return
+        if proc.returncode != 0:
+            why = (err.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+            print(f"rra up: rerun: no blueprint ({why})", file=sys.stderr)
+
+    waiter = threading.Thread(target=wait, name="rerun-blueprint", daemon=True)
+    waiter.start()
+    _blueprints.append(waiter)
 
 
 def export(config: RerunConfig) -> None:
@@ -203,6 +221,8 @@ def finish(config: RerunConfig, out: Path) -> list[str]:
 
     Returns warnings; raises RecordingError (the per-process files stay for a manual
     ``rerun rrd merge``)."""
+    while _blueprints:
+        _blueprints.pop().join(timeout=65)
     folder = Path(config.dir)
     warnings = merge(sorted(folder.glob("*.rrd")), out)
     verify(out)

@@ -166,6 +166,45 @@ def test_a_simulation_clock_is_placed_on_the_run_time_axis(tmp_path):
     assert sim_times(engine.path, "/context/WorkingMotors") == pytest.approx([5.5])
 
 
+def text_rows(path: Path, entity: str) -> list[tuple[str, str]]:
+    """(level, text) of an entity's TextLog rows, in time order."""
+    from rerun.chunk import RrdReader
+
+    rows: list[tuple[int, str, str]] = []
+    for chunk in RrdReader(path).stream().to_chunks():
+        if chunk.entity_path == entity and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            times = batch.column(SIM).cast("int64").to_pylist()
+            texts = batch.column("TextLog:text").to_pylist()
+            levels = batch.column("TextLog:level").to_pylist()
+            rows += [(t, lv[0], tx[0]) for t, tx, lv in zip(times, texts, levels, strict=True)]
+    return [(lv, tx) for _, lv, tx in sorted(rows)]
+
+
+def test_the_events_view_shows_structural_changes_and_hides_cv_updates(tmp_path):
+    config = recording.RerunConfig.new("save", "x", dir=str(tmp_path / "rec"))
+    log = open_logger("adaptation", {ENV_VAR: config.to_env()})
+    assert log is not None
+    t = config.t0
+    log.selection(["A"], {"V": 1.0}, t + 1, universe=["A", "B"], fired=["r1"], changed=True)
+    log.selection(["A"], {"V": 2.0}, t + 2, universe=["A", "B"], fired=["r2"], changed=True)
+    log.selection(["B"], {"V": 2.0}, t + 3, universe=["A", "B"], fired=["r3"], changed=True)
+    for i, sel in enumerate(("['A']", "['A']", "['B']")):
+        log.event(m.AdaptationEvent(stamp=t + 1 + i, kind="adaptation",
+                                    message=f"applied selection {sel}, 1 step(s)",
+                                    durations={"plan": 0.002}))  # fmt: skip
+    log.close()
+    assert log.path is not None
+    assert text_rows(log.path, "/rules") == [
+        ("INFO", "selection ['A'] by r1"),
+        ("DEBUG", "selection ['A'] by r2"),
+        ("INFO", "selection +B -A by r3"),
+    ]
+    assert [lv for lv, _ in text_rows(log.path, "/events")] == ["INFO", "DEBUG", "INFO"]
+    # the phases plot has the two structural adaptations only
+    assert sim_times(log.path, "/timing/plan") == pytest.approx([1.0, 3.0])
+
+
 def test_the_merged_recording_is_compacted_into_few_chunks(tmp_path):
     """Many small chunks (a process flushes every 0.1 s) made the web viewer take 45-90 s
     for the 4 MB demo recording: `finish` compacts them (``rrd optimize``)."""

@@ -31,8 +31,7 @@ Entity tree (names are escaped path parts)::
 
     /context/<measurement>        Scalars (bool as 0/1); string measurements: TextLog,  monitor
                                   and StateChange when the value changes
-    /selection/<feature>          Scalars 1 selected / 0 not (run-time features), and   adaptation
-                                  StateChange "selected" / "-" when that changes
+    /selection/<feature>          Scalars 1 selected / 0 not (run-time features)        adaptation
     /choice/<group>               StateChange: the selected feature of a run-time       adaptation
                                   choice (`RerunConfig.choices`), on change
     /rules                        TextLog: the rules that changed the selection (DEBUG  adaptation
@@ -434,18 +433,17 @@ class Logger:
         changed: bool = False,
     ) -> None:
         """The run-time selection: ``/selection/<f>`` is 1 for each selected feature and 0 for
-        every other feature of ``universe`` (or seen selected before), with a StateChange when
-        that changes; ``/cv/<a>`` the CV values and the active NFR limits of
-        ``RerunConfig.limits``; when ``changed``, the ``fired`` rules as a line of ``/rules``."""
+        every other feature of ``universe`` (or seen selected before); ``/choice/<group>`` the
+        selected feature of each choice of ``RerunConfig.choices``; ``/cv/<a>`` the CV values
+        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, the ``fired``
+        rules as a line of ``/rules`` (what changed: ``+Added -Removed``)."""
         selected = set(features)
         self._features.update(universe)
         self._features.update(selected)
         rr = self.rr
         self._at(None, stamp)
         for f in sorted(self._features):
-            path = f"/selection/{self._part(f)}"
-            self.rec.log(path, rr.Scalars(1.0 if f in selected else 0.0))
-            self._state(path, "selected" if f in selected else "-")
+            self.rec.log(f"/selection/{self._part(f)}", rr.Scalars(1.0 if f in selected else 0.0))
         for attr, value in sorted(cv.items()):
             self.rec.log(f"/cv/{self._part(attr)}", rr.Scalars(float(value)))
         for group, options in self.config.choices:

@@ -372,6 +372,8 @@ def test_render_rrd_saves_a_screenshot_of_the_web_viewer(tmp_path, monkeypatch):
         sys.path.remove(str(TOOLS))
     if render_rrd.find_chromium() is None:
         pytest.skip("no Chromium on this machine (apt-get install chromium) to render with")
+    if importlib.util.find_spec("websockets") is None:
+        pytest.skip("no websockets package to drive Chromium with (pip install websockets)")
     out = object_storing_recording(tmp_path, monkeypatch)
     result = render_rrd.render(out, tmp_path / "shot.png", size=(1200, 800), timeout=240)
     png = (tmp_path / "shot.png").read_bytes()

@@ -22,6 +22,7 @@ import argparse
 import base64
 import contextlib
 import hashlib
+import importlib.util
 import itertools
 import json
 import os
@@ -145,6 +146,8 @@ def render(
     chromium = find_chromium()
     if chromium is None:
         raise RenderError("no Chromium found (apt-get install chromium, or set CHROMIUM)")
+    if importlib.util.find_spec("websockets") is None:
+        raise RenderError("the websockets package is missing (pip install websockets)")
     rrd = rrd.resolve()
     if not rrd.is_file():
         raise RenderError(f"{rrd}: no such recording")

@@ -222,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
     print(render_rows([result]))
     (run_dir / "report.json").write_bytes(msgspec.json.encode(report))
     if out.exists():
-        print(f"\nRecording: {out} (verified). Open it with:\n  rerun {out}")
+        print(f"\nRecording: {out} (verified). Open it with:\n  rra view {out}")
     else:
         print(f"\nNo recording was written (see {run_dir / 'up.log'}).")
     print(f"Logs and events: {run_dir}")

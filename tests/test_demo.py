@@ -9,6 +9,7 @@ from pathlib import Path
 from rra_agent.bus import messages as m
 from rra_agent.demo import recovery_report
 from rra_agent.scenario.expectations import Applied, DataSample, Recording
+from rra_agent.viz.blueprint import read_blueprint
 from rra_agent.viz.recording import entity_paths, verify
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,7 +76,7 @@ def test_rra_demo_prints_the_report_and_writes_a_verifying_recording(tmp_path):
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     assert "fault -> first Proploss command applied" in out.stdout
     assert "STAYED AIRBORNE" in out.stdout
-    assert f"rerun {tmp_path / 'demo.rrd'}" in out.stdout
+    assert f"rra view {tmp_path / 'demo.rrd'}" in out.stdout
     verify(tmp_path / "demo.rrd")
     paths = entity_paths(tmp_path / "demo.rrd")
     expected = [
@@ -84,3 +85,19 @@ def test_rra_demo_prints_the_report_and_writes_a_verifying_recording(tmp_path):
         "/events", "/nodes/proploss_controller/state",
     ]  # fmt: skip
     assert [e for e in expected if e not in paths] == []
+    # the designed views (rra_agent.viz.blueprint), each showing data, on simulation time
+    bp = read_blueprint(tmp_path / "demo.rrd")
+    assert bp is not None and bp.timeline == "sim_time"
+    shown = {(v.kind, v.name): v.shows(paths) for v in bp.views}
+    assert shown == {
+        ("3D", "Vehicle"): {p for p in paths if p.startswith("/world/")},
+        ("TextLog", "Adaptation events"): {"/events", "/rules"},
+        ("TimeSeries", "Altitude against its target (m)"): {
+            "/vehicle/altitude", "/vehicle/altitude_target"},
+        ("TimeSeries", "Motor currents (A)"): {"/vehicle/motors/current"},
+        ("TimeSeries", "Motor speeds (rad/s)"): {"/vehicle/motors/measured_speed"},
+        ("TimeSeries", "WorkingMotors"): {"/context/WorkingMotors"},
+        ("StateTimeline", "Selected Controller"): {"/choice/Controller"},
+        ("TimeSeries", "Adaptation phases (ms)"): {p for p in paths if p.startswith("/timing/")},
+    }  # fmt: skip
+    assert {"/world/vehicle/thrust", "/world/trajectory", "/timing/switch"} <= paths

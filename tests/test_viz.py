@@ -256,7 +256,7 @@ def test_rra_up_saves_one_verified_recording_of_the_whole_system(procs, bus, tmp
             "/events", "/timing/execute", "/rules"} <= paths  # fmt: skip
     assert {f"/nodes/{n}/state" for n in ("source", "direct", "filtered", "sink")} <= paths
     files = sorted(p.name for p in (run_dir / "rerun").glob("*/*.rrd"))
-    assert files == sorted(f"{e}.rrd" for e in ENGINES)
+    assert files == sorted([*(f"{e}.rrd" for e in ENGINES), "blueprint.rrd"])
     printed = recording.run_cli("rrd", "print", "-vvv", str(out)).stdout
     assert "adaptation: applied selection ['Filtered', 'Path', 'Tuning']" in printed
 

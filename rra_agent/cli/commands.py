@@ -231,6 +231,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.cli.select:configure", p),
         lazy("rra_agent.cli.select:run"),
     ),
+    "view": Command(
+        "open a recording (FILE.rrd or a run folder) in the Rerun viewer of this environment",
+        lambda p: _configure("rra_agent.cli.view:configure", p),
+        lazy("rra_agent.cli.view:run"),
+    ),
     "agent": Command(
         "serve this machine as a host of a system: start and supervise its nodes",
         lambda p: _configure("rra_agent.host.agent:configure", p),

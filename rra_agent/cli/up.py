@@ -157,6 +157,7 @@ def _run(
     except ValueError as e:
         print(f"rra up: --rerun: {e}", file=sys.stderr)
         return 2
+    recording.attach_blueprint(rerun_config, dep.package)
     recording.export(rerun_config)
     specs = engine_specs(
         dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas

@@ -15,9 +15,11 @@ group on timeout).
     --rerun connect [URL]      stream to a running viewer (default rerun+http://127.0.0.1:9876/proxy)
     --rerun off                no logging (the default)
 
-With ``save``, each logging process writes ``<run-dir>/rerun/<recording-id>/<process>.rrd``;
-once every child has exited, `finish` merges them into PATH (``rerun rrd merge``) and checks
-the result (``rerun rrd verify``). The per-process files are kept.
+With ``save``, each logging process writes ``<run-dir>/rerun/<recording-id>/<process>.rrd``
+and `rra_agent.viz.blueprint.send` the views (``blueprint.rrd``); once every child has
+exited, `finish` merges them into PATH (``rerun rrd optimize``: merged and compacted), checks
+the result (``rerun rrd verify``) and names it in ``<run-dir>/rerun/recording.txt``. The
+per-process files are kept.
 """
 
 from __future__ import annotations
@@ -28,12 +30,21 @@ import re
 import shutil
 import signal
 import subprocess
+import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rra_agent.viz.rerun_log import DEFAULT_URL, ENV_VAR, RerunConfig, viewer_reachable
 
+if TYPE_CHECKING:
+    from rra_agent.models.loader import SystemPackage
+
 SUBDIR = "rerun"
+#: In a run folder: the path of the merged recording when ``--rerun save PATH`` put it
+#: elsewhere (read by ``rra view RUN_DIR``).
+POINTER = f"{SUBDIR}/recording.txt"
 
 
 class RecordingError(Exception):
@@ -58,7 +69,9 @@ def rerun_option(
     if mode == "connect":
         url = rest[0] if rest else DEFAULT_URL
         if not viewer_reachable(url):
-            raise ValueError(f"no Rerun viewer at {url} (start one first: `rerun`)")
+            raise ValueError(
+                f"no Rerun viewer at {url} (start one first: `{venv_rerun() or 'rerun'}`)"
+            )
         return RerunConfig.new("connect", system, url=url), None
     out = Path(rest[0]) if rest else run_dir / "recording.rrd"
     out = out.resolve()
@@ -71,6 +84,45 @@ def rerun_option(
     return config, out
 
 
+#: The blueprint children of `attach_blueprint` (their waiters); `finish` waits for them.
+_blueprints: list[threading.Thread] = []
+
+
+def attach_blueprint(config: RerunConfig, package: SystemPackage) -> None:
+    """Give the recording its views: the package's limits and choices into ``config``
+    (`rra_agent.viz.blueprint.describe`) and the blueprint sent by a child process (it
+    imports rerun, which this process must not: the processes it forks would inherit it).
+    The child runs while the system starts (~1 s); `finish` waits for it. A failure is a
+    warning on stderr: the run goes on without the designed views."""
+    if config.mode == "off":
+        return
+    from rra_agent.viz import blueprint
+
+    blueprint.describe(config, blueprint.layout_of(package))
+    cmd = [sys.executable, "-m", "rra_agent.viz.blueprint", str(package.root)]
+    env = {**os.environ, ENV_VAR: config.to_env(), "RERUN_ANALYTICS": "0"}
+    proc = subprocess.Popen(
+        cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+    def wait() -> None:
+        try:
+            _, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            print("rra up: rerun: no blueprint (timed out after 60 s)", file=sys.stderr)
+            return
+        if proc.returncode != 0:
+            why = (err.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+            print(f"rra up: rerun: no blueprint ({why})", file=sys.stderr)
+
+    waiter = threading.Thread(target=wait, name="rerun-blueprint", daemon=True)
+    waiter.start()
+    _blueprints.append(waiter)
+
+
 def export(config: RerunConfig) -> None:
     """Put ``config`` in this process' environment, which every child inherits (mode off:
     remove any inherited one)."""
@@ -80,16 +132,27 @@ def export(config: RerunConfig) -> None:
         os.environ[ENV_VAR] = config.to_env()
 
 
-def rerun_cli() -> list[str]:
-    """The command that runs the rerun CLI (the native binary when it can be found)."""
+def venv_rerun() -> str | None:
+    """The rerun binary this Python environment installed (``RERUN_CLI_PATH`` overrides):
+    the native one of the ``rerun_cli`` package, else the ``rerun`` script next to the
+    interpreter; None if there is neither (PATH is not searched)."""
     override = os.environ.get("RERUN_CLI_PATH")
     if override:
-        return [override]
+        return override
+    exe_name = "rerun.exe" if os.name == "nt" else "rerun"
     spec = importlib.util.find_spec("rerun_cli")
-    for folder in (spec.submodule_search_locations or []) if spec else []:
-        exe = Path(folder) / ("rerun.exe" if os.name == "nt" else "rerun")
+    folders = [Path(f) for f in ((spec.submodule_search_locations or []) if spec else [])]
+    for exe in [*(f / exe_name for f in folders), Path(sys.executable).parent / exe_name]:
         if exe.is_file() and os.access(exe, os.X_OK):
-            return [str(exe)]
+            return str(exe)
+    return None
+
+
+def rerun_cli() -> list[str]:
+    """The command that runs the rerun CLI (the venv's, else one on PATH)."""
+    own = venv_rerun()
+    if own is not None:
+        return [own]
     found = shutil.which("rerun")
     if found:
         return [found]
@@ -134,33 +197,41 @@ def verify(path: Path) -> None:
 
 
 def merge(sources: Sequence[Path], out: Path) -> list[str]:
-    """Merge ``sources`` into ``out``. A source that cannot be read completely (a process
-    killed while writing) is merged as far as it can be read: the warnings say so."""
+    """Merge ``sources`` into ``out``, compacting the many small chunks the processes wrote
+    into few large ones (``rerun rrd optimize``: the viewer then loads the recording several
+    times faster). A source that cannot be read completely (a process killed while writing)
+    is merged as far as it can be read: the warnings say so."""
     if not sources:
         raise RecordingError("no process wrote a recording")
     srcs = [str(p) for p in sources]
-    proc = run_cli("rrd", "merge", *srcs, "-o", str(out))
+    proc = run_cli("rrd", "optimize", *srcs, "-o", str(out))
     if proc.returncode == 0:
         return []
     warning = f"merge: {_why(proc)}; merged again skipping unreadable data"
-    proc = run_cli("rrd", "merge", "--continue-on-error", *srcs, "-o", str(out))
+    proc = run_cli("rrd", "optimize", "--continue-on-error", *srcs, "-o", str(out))
     if proc.returncode != 0:
         raise RecordingError(f"cannot merge {', '.join(srcs)}: {_why(proc)}")
     return [warning]
 
 
 def finish(config: RerunConfig, out: Path) -> list[str]:
-    """After a ``save`` run: merge every process' file into ``out`` and verify it.
+    """After a ``save`` run: merge every process' file (and the blueprint's) into ``out``,
+    verify it, and name it in the run folder's ``rerun/recording.txt`` (for ``rra view
+    RUN_DIR``).
 
     Returns warnings; raises RecordingError (the per-process files stay for a manual
     ``rerun rrd merge``)."""
-    sources = sorted(Path(config.dir).glob("*.rrd"))
-    warnings = merge(sources, out)
+    while _blueprints:
+        _blueprints.pop().join(timeout=65)
+    folder = Path(config.dir)
+    warnings = merge(sorted(folder.glob("*.rrd")), out)
     verify(out)
+    (folder.parent / "recording.txt").write_text(f"{out}\n")
     return warnings
 
 
-_CHUNK = re.compile(r" - (/\S*) - data columns")
+#: An entity path in ``rrd print``: escaped characters (``Communic.\ Channel``) included.
+_CHUNK = re.compile(r" - (/(?:\\.|[^\s\\])*) - data columns")
 
 
 def entity_paths(path: Path) -> set[str]:

@@ -15,19 +15,31 @@ be up first (`open_logger` checks it with a TCP connect and logs nothing otherwi
 unreachable gRPC sink makes the process' exit take ~11 s; a viewer that goes away during the
 run still costs that at exit, beyond the supervisor's SIGINT grace of 2 s).
 
-Timelines: ``wall_time`` (timestamp, seconds since the epoch) on everything, ``sim_time``
-(duration, seconds of simulated time) where a simulation time is known. Rerun's automatic
-``log_time`` is turned off: ``wall_time`` is the time of the *event* (a measurement's
-computation, a selection's decision), not of the logging call.
+Timelines: ``sim_time`` (duration: seconds of simulation time since the run started; the
+viewer's default, see `rra_agent.viz.blueprint`) and ``wall_time`` (timestamp, seconds since
+the epoch) on everything. The simulated worlds run in real time (the vehicle simulator's
+``realtime_factor`` is 1 by default, the object-storing robot has no clock of its own), so a
+process that has no simulation clock (the engines, the robot's nodes) stamps ``sim_time`` with
+the wall-clock seconds since ``RerunConfig.t0`` (the start of ``rra up``), and a process that
+passes its own ``sim_time`` (the vehicle simulator: physics seconds since it armed) has it
+placed on that axis at the run time of its first sample (so the vehicle, the measurements and
+the adaptation events line up; at another realtime factor the physics axis stretches against
+the engines'). Rerun's automatic ``log_time`` is turned off: ``wall_time`` is the time of the
+*event* (a measurement's computation, a selection's decision), not of the logging call.
 
 Entity tree (names are escaped path parts)::
 
-    /context/<measurement>        Scalars (bool as 0/1); TextLog for string measurements  monitor
+    /context/<measurement>        Scalars (bool as 0/1); string measurements: TextLog,  monitor
+                                  and StateChange when the value changes
     /selection/<feature>          Scalars 1 selected / 0 not (run-time features)        adaptation
+    /choice/<group>               StateChange: the selected feature of a run-time       adaptation
+                                  choice (`RerunConfig.choices`), on change
+    /rules                        TextLog: the rules that changed the selection (DEBUG  adaptation
+                                  when only CV values changed)
     /cv/<attribute>               Scalars, the Continuous Variability values            adaptation
-    /rules                        TextLog: the rules that changed the selection         adaptation
-    /events                       TextLog with level: adaptation events (plan steps)    resolution
-    /timing/<phase>               Scalars, an adaptation's phase durations in ms        resolution
+    /events                       TextLog with level: adaptation events (plan steps,    resolution
+                                  phase durations; DEBUG for a CV-only adaptation)
+    /timing/<phase>               Scalars drawn as points: an adaptation's phases (ms)  resolution
     /nodes/<node>/state           TextLog with level: STARTING, RUNNING pid 12, ...     resolution
     /nodes/<node>/running         Scalars 1 running / 0.5 standby (inactive) / 0 not    resolution
     /world/vehicle                Transform3D: the body pose in the world frame         simulator
@@ -38,9 +50,12 @@ Entity tree (names are escaped path parts)::
     /world/trajectory             LineStrips3D: the path flown so far (world frame)     simulator
     /vehicle/altitude             Scalars (and /vehicle/altitude_target)                simulator
     /vehicle/motors/<quantity>    Scalars, one series per motor (m1, m2, ...)           simulator
+    /map/...                      2D floor map (static) and /map/robot, /map/path       robot driver
+                                  (`robot_pose_2d`)
 
-The 3D scene lives under ``/world`` and the plots elsewhere, so the viewer's default layout
-gives one 3D view and one time-series view per subtree.
+The 3D scene lives under ``/world``, the 2D map under ``/map`` and the plots elsewhere; the
+views a user sees are laid out by the blueprint of `rra_agent.viz.blueprint`, which ``rra up``
+adds to every recording.
 
 Failures never reach the caller: every public method catches, counts (``errors``) and
 prints the first failure once to stderr.
@@ -117,6 +132,15 @@ class RerunConfig(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unkno
     dir: str = ""
     #: ``connect``: the viewer's gRPC proxy URL.
     url: str = ""
+    #: The run's start (wall clock, seconds since the epoch): zero of the ``sim_time``
+    #: timeline for every process (0: each process' own start).
+    t0: float = 0.0
+    #: NFR limits (name, feature, value): while the feature is selected, the value is logged
+    #: as ``/cv/<name>`` beside the CV values (a gap while it is not).
+    limits: list[tuple[str, str, float]] = []
+    #: Run-time choices (group, its features): ``/choice/<group>`` is a state lane naming
+    #: the selected feature of the group ("-" when none is).
+    choices: list[tuple[str, list[str]]] = []
 
     @classmethod
     def new(cls, mode: Mode, system: str, *, dir: str = "", url: str = "") -> RerunConfig:
@@ -124,7 +148,12 @@ class RerunConfig(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unkno
         ``system`` (letters, digits, ``-`` and ``_`` only, as Rerun wants)."""
         app = "".join(c if c.isalnum() or c in "-_" else "-" for c in system)
         return cls(
-            mode=mode, recording_id=uuid.uuid4().hex, application_id=f"rra-{app}", dir=dir, url=url
+            mode=mode,
+            recording_id=uuid.uuid4().hex,
+            application_id=f"rra-{app}",
+            dir=dir,
+            url=url,
+            t0=time.time(),
         )
 
     def to_env(self) -> str:
@@ -281,6 +310,14 @@ class Logger:
         self._thrust_scale = 0.05
         self._trajectory: deque[tuple[float, float, float]] = deque(maxlen=self.trajectory_points)
         self._trajectory_due = Every(self.trajectory_period)
+        self._t0 = config.t0 or time.time()
+        self._sim_offset: float | None = None  # run time of a simulation clock's zero
+        self._last_sim = -math.inf
+        self._states: dict[str, str] = {}  # last StateChange per entity
+        self._last_selection: set[str] | None = None
+        self._last_applied = ""
+        self._path2d: deque[tuple[float, float]] = deque(maxlen=self.trajectory_points)
+        self._path_due = Every(1.0)
         rec = rr.RecordingStream(config.application_id, recording_id=config.recording_id or None)
         rec.set_log_time_enabled(False)
         if config.mode == "save":
@@ -315,12 +352,27 @@ class Logger:
             part = self._parts[name] = self.rr.escape_entity_path_part(name)
         return part
 
+    def _run_time(self, sim_time: float | None, wall: float) -> float:
+        """The ``sim_time`` of a sample: the run's clock (see the module's docstring)."""
+        if sim_time is None:
+            return wall - self._t0
+        if self._sim_offset is None or sim_time < self._last_sim - 1.0:  # first, or restarted
+            self._sim_offset = (wall - self._t0) - sim_time
+        self._last_sim = sim_time
+        return sim_time + self._sim_offset
+
     def _at(self, sim_time: float | None, wall_time: float | None) -> None:
         rec = self.rec
-        rec.reset_time()  # time is per thread: drop a sim_time an earlier call left here
-        rec.set_time(WALL, timestamp=time.time() if wall_time is None else wall_time)
-        if sim_time is not None:
-            rec.set_time(SIM, duration=sim_time)
+        wall = time.time() if wall_time is None else wall_time
+        rec.reset_time()  # time is per thread: drop a time an earlier call left here
+        rec.set_time(WALL, timestamp=wall)
+        rec.set_time(SIM, duration=self._run_time(sim_time, wall))
+
+    def _state(self, path: str, state: str) -> None:
+        """A StateChange at ``path`` if ``state`` differs from the last one (time set)."""
+        if self._states.get(path) != state:
+            self._states[path] = state
+            self.rec.log(path, self.rr.StateChange(state=state))
 
     def _log(self, path: str, item: Any, sim_time: float | None, wall_time: float | None) -> None:
         self._at(sim_time, wall_time)
@@ -330,8 +382,9 @@ class Logger:
         rows = self._rows.get(path)
         if rows is None:
             rows = self._rows[path] = _Rows()
-        rows.sim.append(math.nan if sim_time is None else sim_time)
-        rows.wall.append(time.time() if wall_time is None else wall_time)
+        wall = time.time() if wall_time is None else wall_time
+        rows.sim.append(self._run_time(sim_time, wall))
+        rows.wall.append(wall)
         rows.values.append(value)
         now = time.monotonic()
         if len(rows.values) >= self.batch_rows or now - self._last_send >= self.batch_seconds:
@@ -343,10 +396,10 @@ class Logger:
         for path, rows in list(self._rows.items()):
             if not rows.values:
                 continue
-            sim = np.asarray(rows.sim, dtype=np.float64)
-            indexes = [rr.TimeColumn(WALL, timestamp=np.asarray(rows.wall, dtype=np.float64))]
-            if not np.isnan(sim).any():
-                indexes.append(rr.TimeColumn(SIM, duration=sim))
+            indexes = [
+                rr.TimeColumn(WALL, timestamp=np.asarray(rows.wall, dtype=np.float64)),
+                rr.TimeColumn(SIM, duration=np.asarray(rows.sim, dtype=np.float64)),
+            ]
             values = np.asarray(rows.values, dtype=np.float64)
             self._rows[path] = _Rows()
             self.rec.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=values))
@@ -364,6 +417,7 @@ class Logger:
         path = f"/context/{self._part(name)}"
         if isinstance(value, str):
             self._log(path, self.rr.TextLog(value), sim_time, stamp)
+            self._state(path, value)
         else:
             self._log(path, self.rr.Scalars(float(value)), sim_time, stamp)
 
@@ -379,8 +433,10 @@ class Logger:
         changed: bool = False,
     ) -> None:
         """The run-time selection: ``/selection/<f>`` is 1 for each selected feature and 0 for
-        every other feature of ``universe`` (or seen selected before); ``/cv/<a>`` the CV
-        values; when ``changed``, the ``fired`` rules as a line of ``/rules``."""
+        every other feature of ``universe`` (or seen selected before); ``/choice/<group>`` the
+        selected feature of each choice of ``RerunConfig.choices``; ``/cv/<a>`` the CV values
+        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, the ``fired``
+        rules as a line of ``/rules`` (what changed: ``+Added -Removed``)."""
         selected = set(features)
         self._features.update(universe)
         self._features.update(selected)
@@ -390,21 +446,52 @@ class Logger:
             self.rec.log(f"/selection/{self._part(f)}", rr.Scalars(1.0 if f in selected else 0.0))
         for attr, value in sorted(cv.items()):
             self.rec.log(f"/cv/{self._part(attr)}", rr.Scalars(float(value)))
-        if changed:
-            text = f"selection {sorted(selected)}" + (f" by {'; '.join(fired)}" if fired else "")
-            self.rec.log("/rules", rr.TextLog(text, level="INFO"))
+        for group, options in self.config.choices:
+            chosen = [f for f in options if f in selected]
+            self._state(f"/choice/{self._part(group)}", ", ".join(chosen) or "-")
+        for name, feature, limit in self.config.limits:
+            active = feature in selected
+            self.rec.log(f"/cv/{self._part(name)}", rr.Scalars(limit if active else math.nan))
+        if changed:  # DEBUG when only CV values changed (the features did not)
+            last = self._last_selection
+            level = "INFO" if selected != last else "DEBUG"
+            if last is None or selected == last:
+                text = f"selection {sorted(selected)}"
+            else:  # what changed: +added -removed
+                diff = [f"+{f}" for f in sorted(selected - last)]
+                text = "selection " + " ".join(diff + [f"-{f}" for f in sorted(last - selected)])
+            text += f" by {'; '.join(fired)}" if fired else ""
+            self.rec.log("/rules", rr.TextLog(text, level=level))
+        self._last_selection = selected
 
     @_safe
     def event(self, ev: AdaptationEvent) -> None:
-        """An adaptation event: a line of ``/events`` (with its plan steps) and its phase
-        durations at ``/timing/<phase>`` (ms)."""
+        """An adaptation event: a line of ``/events`` (with its plan steps and phase
+        durations) and, for an adaptation that changed features, its phase durations at
+        ``/timing/<phase>`` (ms)."""
         rr = self.rr
         head = f"{ev.kind}: {ev.message}" + (f" [{ev.outcome}]" if ev.outcome else "")
-        text = "\n".join([head, *(f"  {step}" for step in ev.plan)])
+        phases = ", ".join(f"{p} {s * 1000.0:.1f} ms" for p, s in ev.durations.items())
+        lines = [head + (f" ({phases})" if phases else ""), *(f"  {step}" for step in ev.plan)]
+        level = _LEVELS.get(ev.level, "INFO")
+        if ev.kind == "adaptation" and ev.message.startswith("applied selection"):
+            applied = ev.message.partition("]")[0]
+            if applied == self._last_applied and level == "INFO":
+                level = "DEBUG"  # the same features again: only CV values changed
+            self._last_applied = applied
         self._at(None, ev.stamp)
-        self.rec.log("/events", rr.TextLog(text, level=_LEVELS.get(ev.level, "INFO")))
-        for phase, seconds in sorted(ev.durations.items()):
-            self.rec.log(f"/timing/{self._part(phase)}", rr.Scalars(seconds * 1000.0))
+        self.rec.log("/events", rr.TextLog("\n".join(lines), level=level))
+        # The phases of the adaptations that changed features only: a deployment's seconds
+        # would flatten them, and CV-only adaptations (every tick) bury them; the durations
+        # of every event are in its line of /events.
+        structural = ev.kind == "adaptation" and level != "DEBUG"
+        timed = ev.durations.items() if structural else ()
+        for phase, seconds in sorted(timed):
+            path = f"/timing/{self._part(phase)}"
+            if path not in self._named:  # a few samples per run: points, not lines
+                self._named.add(path)
+                self.rec.log(path, rr.SeriesPoints(names=phase, marker_sizes=4.0), static=True)
+            self.rec.log(path, rr.Scalars(seconds * 1000.0))
 
     @_safe
     def node_state(self, st: NodeState) -> None:
@@ -460,9 +547,13 @@ class Logger:
         rr, np = self.rr, self._np
         vals = np.asarray(values, dtype=np.float64)
         walls = np.full(len(vals), time.time()) if wall_times is None else wall_times
-        indexes = [rr.TimeColumn(WALL, timestamp=np.asarray(walls, dtype=np.float64))]
-        if sim_times is not None:
-            indexes.append(rr.TimeColumn(SIM, duration=np.asarray(sim_times, dtype=np.float64)))
+        walls = np.asarray(walls, dtype=np.float64)
+        if sim_times is None:
+            sims = walls - self._t0
+        else:
+            sims = np.asarray(sim_times, dtype=np.float64)
+            sims = sims + (self._run_time(float(sims[0]), float(walls[0])) - sims[0])
+        indexes = [rr.TimeColumn(WALL, timestamp=walls), rr.TimeColumn(SIM, duration=sims)]
         self.rec.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=vals))
 
     @_safe
@@ -598,6 +689,19 @@ class Logger:
         wall_time: float | None = None,
     ) -> None:
         """Altitude (and its set point) as ``/vehicle/altitude[_target]`` (buffered)."""
+        if "/vehicle/altitude" not in self._named:
+            self._named.add("/vehicle/altitude")
+            rr = self.rr
+            self.rec.log(
+                "/vehicle/altitude",
+                rr.SeriesLines(names="altitude", colors=(40, 140, 230), widths=2.0),
+                static=True,
+            )
+            self.rec.log(
+                "/vehicle/altitude_target",
+                rr.SeriesLines(names="target", colors=(230, 120, 30), widths=1.5),
+                static=True,
+            )
         self._push("/vehicle/altitude", float(z), sim_time, wall_time)
         if target is not None:
             self._push("/vehicle/altitude_target", float(target), sim_time, wall_time)
@@ -619,6 +723,38 @@ class Logger:
             self.rec.log(path, self.rr.SeriesLines(names=names), static=True)
             self._named.add(path)
         self._push(path, [float(v) for v in values], sim_time, wall_time)
+
+    # ---- a mobile robot on a floor map ------------------------------------------------------
+    @_safe
+    def robot_pose_2d(
+        self,
+        x: float,
+        y: float,
+        theta: float,
+        *,
+        sim_time: float | None = None,
+        wall_time: float | None = None,
+    ) -> None:
+        """The robot on the 2D map: ``/map/robot`` (a dot and a heading arrow, m and rad in
+        the map frame) and ``/map/path`` (where it has been, points 5 cm apart). The 2D
+        view's y axis points down, so y is drawn negated (the map's y points up)."""
+        rr = self.rr
+        self._at(sim_time, wall_time)
+        y = -y
+        heading = (0.5 * math.cos(theta), -0.5 * math.sin(theta))
+        self.rec.log(
+            "/map/robot",
+            rr.Points2D([(x, y)], radii=0.2, colors=[(30, 120, 220)], labels=["robot"]),
+            rr.Arrows2D(origins=[(x, y)], vectors=[heading], colors=[(30, 120, 220)]),
+        )
+        path = self._path2d
+        if not path or math.dist(path[-1], (x, y)) >= 0.05:
+            path.append((x, y))
+        now = self._run_time(sim_time, time.time() if wall_time is None else wall_time)
+        if len(path) > 1 and self._path_due(now):  # the whole path, once a second at most
+            self.rec.log(
+                "/map/path", rr.LineStrips2D([list(path)], radii=0.03, colors=[(30, 120, 220)])
+            )
 
     # ---- lifecycle ----------------------------------------------------------------------
     @_safe

@@ -59,7 +59,17 @@ class RobotDriver(SafeNode):
         self.cmd_time: float | None = None
         self.level = self.fparam("battery_level", 100.0, 0.0, 100.0)
         self.clock = StepClock()
-        self.odom_timer, self.battery_timer = Every(), Every()
+        self.odom_timer, self.battery_timer, self.viz_timer = Every(), Every(), Every()
+        # Rerun (only when the run records one: RRA_RERUN): the floor map and the robot on it.
+        from rra_agent.viz.rerun_log import open_logger
+
+        self.viz = open_logger(self.ctx.name)
+        if self.viz is not None:
+            world.draw_map(self.viz)
+
+    def on_stop(self) -> None:
+        if self.viz is not None:
+            self.viz.close()
 
     def _on_cmd_vel(self, data: dict[str, Any]) -> bool:
         linear, angular = num(data.get("linear")), num(data.get("angular"))
@@ -80,6 +90,8 @@ class RobotDriver(SafeNode):
             self.emit("odom", {"pose": self.pose.to_msg(), "v": self.v, "w": self.w})
         if self.battery_timer.due(now, 1.0 / self.fparam("battery_rate_hz", 1.0, 0.01, 100.0)):
             self._publish_battery()
+        if self.viz is not None and self.viz_timer.due(now, 0.1):
+            self.viz.robot_pose_2d(self.pose.x, self.pose.y, self.pose.theta, wall_time=now)
 
     def on_params(self, changed: dict[str, Any]) -> None:
         level = num(changed.get("battery_level"))

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import re
+from typing import Any
 
 from rra_agent.nodes.object_storing._common import Pose
 
@@ -125,3 +126,44 @@ def camera_scene() -> list[list[float]]:
     for cx, cy in OBJECTS:
         points.extend(_box(cx, cy))
     return points
+
+
+# ---- the map in the Rerun viewer (only when the run records one) --------------------------
+#: Floor outlines (m): name -> (x_min, y_min, x_max, y_max); the corridor is narrower.
+FLOOR = {
+    "RoomA": (-1.0, -3.0, ROOM_A_END, 3.0),
+    "Corridor": (ROOM_A_END, -1.0, ROOM_B_START, 1.0),
+    "RoomB": (ROOM_B_START, -3.0, 12.0, 3.0),
+}
+
+
+def draw_map(log: Any) -> None:
+    """The static floor map on a `rra_agent.viz.rerun_log.Logger`: ``/map/rooms`` (labelled
+    outlines), ``/map/doors`` and ``/map/racks`` (small racks in room A, large in room B, in
+    front of the pose the robot takes to reach them). The 2D view's y axis points down: y is
+    drawn negated, as `Logger.robot_pose_2d` does, so that the map's y points up."""
+    rr = log.rr
+    names = list(FLOOR)
+    mins = [(x0, -y1) for x0, _, _, y1 in FLOOR.values()]
+    sizes = [(x1 - x0, y1 - y0) for x0, y0, x1, y1 in FLOOR.values()]
+    colors = [(70, 110, 200), (200, 140, 40), (50, 150, 80)]
+    log.log(
+        "/map/rooms",
+        rr.Boxes2D(mins=mins, sizes=sizes, labels=names, colors=colors, draw_order=0.0),
+        static=True,
+    )
+    log.log(
+        "/map/doors",
+        rr.Points2D([(d.x, -d.y) for d in DOORS], radii=0.15, colors=[(120, 80, 40)]),
+        static=True,
+    )
+    centres, halves = [], []
+    for rack, p in RACKS.items():
+        depth = 0.6  # the rack stands this far ahead of the approach pose
+        centres.append((p.x + depth * math.cos(p.theta), -(p.y + depth * math.sin(p.theta))))
+        halves.append((0.6, 0.2) if rack.startswith("B") else (0.35, 0.15))
+    log.log(
+        "/map/racks",
+        rr.Boxes2D(centers=centres, half_sizes=halves, labels=list(RACKS), colors=[(150, 100, 60)]),
+        static=True,
+    )

@@ -16,6 +16,7 @@ import shutil
 import sys
 from collections.abc import Hashable, Iterable, Iterator
 from pathlib import Path
+from types import ModuleType
 from typing import TypeVar
 
 from rra_agent.errors import ModelError
@@ -504,19 +505,29 @@ def _callable_problem(dotted: str, root: Path) -> str | None:
         return f"'{dotted}' is not a dotted Python path (expected module.function)"
     for i in range(len(parts) - 1, 0, -1):
         modname = ".".join(parts[:i])
-        try:
-            module = importlib.import_module(modname)
-        except ModuleNotFoundError as e:
-            if e.name is not None and (modname == e.name or modname.startswith(e.name + ".")):
-                continue
-            return f"importing '{modname}' failed: {e}"
-        except (Exception, SystemExit) as e:
-            return f"importing '{modname}' failed: {type(e).__name__}: {e}"
-        hidden = shadowed_problem(module, [root])
-        if hidden is not None:
-            return hidden
+        module, problem = _import(modname, root)
+        if module is None and problem is None:  # no such module: a shorter prefix may be
+            continue
+        if module is None:
+            return problem
         return _attribute_problem(module, modname, parts[i:], dotted)
     return f"cannot import '{dotted}': no module named '{parts[0]}'"
+
+
+def _import(modname: str, root: Path) -> tuple[ModuleType | None, str | None]:
+    """The module ``modname`` (its module-level code runs), or why not: ``(None, None)``
+    when no module of that name exists, ``(None, reason)`` when importing it failed or a
+    module of another origin hides the package's."""
+    try:
+        module = importlib.import_module(modname)
+    except ModuleNotFoundError as e:
+        if e.name is not None and (modname == e.name or modname.startswith(e.name + ".")):
+            return None, None
+        return None, f"importing '{modname}' failed: {e}"
+    except (Exception, SystemExit) as e:
+        return None, f"importing '{modname}' failed: {type(e).__name__}: {e}"
+    hidden = shadowed_problem(module, [root])
+    return (None, hidden) if hidden is not None else (module, None)
 
 
 def _node_class_problem(dotted: str, root: Path) -> str | None:
@@ -528,20 +539,12 @@ def _node_class_problem(dotted: str, root: Path) -> str | None:
     modname, sep, clsname = dotted.replace(":", ".").rpartition(".")
     if not sep or not all(p.isidentifier() for p in [*modname.split("."), clsname]):
         return f"implementation '{dotted}' is not a dotted Python path (expected module.Class)"
-    try:
-        module = importlib.import_module(modname)
-    except ModuleNotFoundError as e:
-        if e.name is not None and (modname == e.name or modname.startswith(e.name + ".")):
-            return (
-                f"cannot import '{modname}' for implementation '{dotted}': no module named"
-                f" '{e.name}' (neither installed nor in the package folder)"
-            )
-        return f"importing '{modname}' failed: {e}"
-    except (Exception, SystemExit) as e:
-        return f"importing '{modname}' failed: {type(e).__name__}: {e}"
-    hidden = shadowed_problem(module, [root])
-    if hidden is not None:
-        return hidden
+    module, problem = _import(modname, root)
+    if module is None:
+        return problem or (
+            f"cannot import '{modname}' for implementation '{dotted}': no module named"
+            f" '{modname}' (neither installed nor in the package folder)"
+        )
     cls = getattr(module, clsname, None)
     if cls is None:
         known = [

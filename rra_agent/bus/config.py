@@ -45,7 +45,7 @@ from typing import Any, Literal
 import msgspec
 
 from rra_agent.errors import RraError
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 #: The default hub once the process has certificates (``--certs``).
@@ -114,7 +114,7 @@ def node_zid(system: str, node: str) -> str:
     return digest.lstrip("0") or "1"
 
 
-class Tls(Model, frozen=True):
+class Tls(FrozenModel, frozen=True):
     """A process's mTLS identity (paths, made by ``rra certs``): the system CA it trusts and
     its own certificate and private key, used both to listen and to connect."""
 
@@ -136,7 +136,7 @@ class Tls(Model, frozen=True):
         }
 
 
-class BusConfig(Model, frozen=True):
+class BusConfig(FrozenModel, frozen=True):
     mode: Literal["client", "peer", "router"] = "client"
     #: Endpoints this process listens on (routers and peers; clients listen on nothing).
     listen: list[str] = []

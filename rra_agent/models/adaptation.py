@@ -14,7 +14,7 @@ from typing import Literal
 
 import msgspec
 
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 from rra_agent.models.features import Span
 from rra_agent.models.measurements import MeasurementType
 
@@ -34,7 +34,7 @@ FUNCTIONS: dict[str, tuple[int, int | None]] = {
 }
 
 
-class Node(Model, frozen=True, tag_field="node"):
+class Node(FrozenModel, frozen=True, tag_field="node"):
     """Base of the AST's tagged unions (the tag field is ``node``: ``type`` is a field name)."""
 
 
@@ -158,14 +158,14 @@ Expr = (
 
 
 # ---- actions -----------------------------------------------------------------------------
-class FeatureRef(Model, frozen=True):
+class FeatureRef(FrozenModel, frozen=True):
     """A feature named in an action: canonical name once resolved (written name before)."""
 
     name: str
     span: Span | None = None
 
 
-class AttrRef(Model, frozen=True):
+class AttrRef(FrozenModel, frozen=True):
     """An attribute named in an action; ``feature`` is its owner (None only before resolution)."""
 
     name: str
@@ -204,7 +204,7 @@ Action = Activate | Deactivate | SelectVariant | SetAttribute
 
 
 # ---- rules -------------------------------------------------------------------------------
-class Branch(Model, frozen=True):
+class Branch(FrozenModel, frozen=True):
     """One arm of a rule: ``if (condition)``/``else if (condition)``, or ``else`` (None)."""
 
     condition: Expr | None
@@ -234,7 +234,7 @@ class RuleSet(Node, frozen=True, tag="ruleSet"):
         return tuple(sorted(self.rules, key=lambda r: -(r.priority or 0)))
 
 
-class Import(Model, frozen=True):
+class Import(FrozenModel, frozen=True):
     """``import caseStudy.contextDepMeasModel as cdm``: ``cdm.X`` names measurement X."""
 
     module: str
@@ -242,7 +242,7 @@ class Import(Model, frozen=True):
     span: Span | None = None
 
 
-class AdaptationModel(Model, frozen=True):
+class AdaptationModel(FrozenModel, frozen=True):
     imports: tuple[Import, ...] = ()
     items: tuple[Rule | RuleSet, ...] = ()
     source: str = "<rules>"

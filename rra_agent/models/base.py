@@ -13,3 +13,10 @@ import msgspec
 
 class Model(msgspec.Struct, forbid_unknown_fields=True, kw_only=True, omit_defaults=True):
     """Base of every model Struct."""
+
+
+class FrozenModel(
+    msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True, omit_defaults=True
+):
+    """Base of every immutable model Struct: `Model`'s settings, frozen (a frozen Struct may
+    not derive from a mutable one)."""

@@ -34,7 +34,7 @@ from typing import Literal
 import msgspec
 
 from rra_agent.errors import Location
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 
 Binding = Literal["deployment", "runtime"]
 AttributeKind = Literal["plain", "cim", "nfr", "cv"]
@@ -60,7 +60,7 @@ class Span(msgspec.Struct, frozen=True):
         return Location(self.file, self.line, self.col)
 
 
-class Attribute(Model, frozen=True):
+class Attribute(FrozenModel, frozen=True):
     """A UVL attribute. ``value`` is a scalar, a list, a nested mapping, or None (a flag).
 
     A constraint attribute (``constraint E`` / ``constraints [E, ...]``) is an Attribute named
@@ -135,14 +135,14 @@ class Attribute(Model, frozen=True):
         return None
 
 
-class Cardinality(Model, frozen=True):
+class Cardinality(FrozenModel, frozen=True):
     """A feature cardinality ``cardinality [lower..upper]`` (``upper`` None means ``*``)."""
 
     lower: int
     upper: int | None = None
 
 
-class Feature(Model, frozen=True):
+class Feature(FrozenModel, frozen=True):
     """A feature with its attributes and child groups.
 
     ``type`` is the UVL type written before the name (None: untyped, i.e. Boolean);
@@ -188,7 +188,7 @@ class Feature(Model, frozen=True):
             yield from g.children
 
 
-class Group(Model, frozen=True):
+class Group(FrozenModel, frozen=True):
     """A child group. ``cardinality`` uses ``lower``/``upper`` (``upper`` None means ``*``)."""
 
     kind: GroupKind
@@ -215,7 +215,7 @@ class Group(Model, frozen=True):
 
 
 # Constraint expressions: a tagged union, dispatched with `match`.
-class Ref(Model, frozen=True, tag="ref"):
+class Ref(FrozenModel, frozen=True, tag="ref"):
     """A reference: a feature (``A``), an attribute (``A.price``) or a name from an imported
     model (``sub.A``); dotted parts are joined with ``.``."""
 
@@ -223,31 +223,31 @@ class Ref(Model, frozen=True, tag="ref"):
     span: Span | None = None
 
 
-class Not(Model, frozen=True, tag="not"):
+class Not(FrozenModel, frozen=True, tag="not"):
     operand: Expr
 
 
-class And(Model, frozen=True, tag="and"):
+class And(FrozenModel, frozen=True, tag="and"):
     left: Expr
     right: Expr
 
 
-class Or(Model, frozen=True, tag="or"):
+class Or(FrozenModel, frozen=True, tag="or"):
     left: Expr
     right: Expr
 
 
-class Implies(Model, frozen=True, tag="implies"):
+class Implies(FrozenModel, frozen=True, tag="implies"):
     left: Expr
     right: Expr
 
 
-class Equiv(Model, frozen=True, tag="equiv"):
+class Equiv(FrozenModel, frozen=True, tag="equiv"):
     left: Expr
     right: Expr
 
 
-class Compare(Model, frozen=True, tag="compare"):
+class Compare(FrozenModel, frozen=True, tag="compare"):
     """An equation of UVL's arithmetic level: ``left op right`` over terms."""
 
     op: CompareOp
@@ -255,7 +255,7 @@ class Compare(Model, frozen=True, tag="compare"):
     right: Expr
 
 
-class Arith(Model, frozen=True, tag="arith"):
+class Arith(FrozenModel, frozen=True, tag="arith"):
     """A binary arithmetic term ``left op right``."""
 
     op: ArithOp
@@ -263,17 +263,17 @@ class Arith(Model, frozen=True, tag="arith"):
     right: Expr
 
 
-class Num(Model, frozen=True, tag="num"):
+class Num(FrozenModel, frozen=True, tag="num"):
     value: int | float
 
 
-class Text(Model, frozen=True, tag="text"):
+class Text(FrozenModel, frozen=True, tag="text"):
     """A string literal of a string constraint (``name == 'x'``)."""
 
     value: str
 
 
-class Aggregate(Model, frozen=True, tag="aggregate"):
+class Aggregate(FrozenModel, frozen=True, tag="aggregate"):
     """An aggregate function: ``sum``/``avg`` (attribute, or feature and attribute), ``len``,
     ``floor``, ``ceil`` (one reference)."""
 
@@ -287,7 +287,7 @@ Expr = Ref | Not | And | Or | Implies | Equiv | Compare | Arith | Num | Text | A
 BOOLEAN_NODES = (Ref, Not, And, Or, Implies, Equiv)
 
 
-class ConstraintList(Model, frozen=True, tag="constraints"):
+class ConstraintList(FrozenModel, frozen=True, tag="constraints"):
     """The value of a constraint attribute: ``constraint E`` (``single``) or
     ``constraints [E, ...]``."""
 
@@ -295,12 +295,12 @@ class ConstraintList(Model, frozen=True, tag="constraints"):
     single: bool = False
 
 
-class Constraint(Model, frozen=True):
+class Constraint(FrozenModel, frozen=True):
     expr: Expr
     span: Span | None = None
 
 
-class Import(Model, frozen=True):
+class Import(FrozenModel, frozen=True):
     """``imports`` line: another model's namespace, optionally ``as`` an alias."""
 
     namespace: str
@@ -345,7 +345,7 @@ def is_boolean(expr: Expr) -> bool:
     return all(isinstance(e, BOOLEAN_NODES) for e in subexpressions(expr))
 
 
-class FeatureModel(Model, frozen=True, dict=True):
+class FeatureModel(FrozenModel, frozen=True, dict=True):
     """A whole feature model: root feature, cross-tree constraints, and derived indexes."""
 
     root: Feature

@@ -22,14 +22,14 @@ from __future__ import annotations
 
 from typing import Literal
 
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 from rra_agent.models.system import parse_endpoint
 
 PRIMITIVE_TYPES = frozenset({"float", "int", "bool", "str", "bytes"})
 MeasurementType = Literal["float", "int", "bool", "str"]
 
 
-class DataType(Model, frozen=True):
+class DataType(FrozenModel, frozen=True):
     """A composite data type: named fields of primitive, ``list[T]`` or other composite types."""
 
     name: str
@@ -39,7 +39,7 @@ class DataType(Model, frozen=True):
     description: str | None = None
 
 
-class Sync(Model, frozen=True):
+class Sync(FrozenModel, frozen=True):
     policy: Literal["latest", "window"] = "latest"
     window_ms: float | None = None
 
@@ -50,7 +50,7 @@ class Sync(Model, frozen=True):
             raise ValueError("window_ms only applies to the 'window' policy")
 
 
-class Measurement(Model, frozen=True):
+class Measurement(FrozenModel, frozen=True):
     name: str
     type: MeasurementType
     #: One source interface ``component.port`` ...
@@ -92,7 +92,7 @@ class Measurement(Model, frozen=True):
         return [self.source] if self.source is not None else list(self.sources)
 
 
-class MeasurementsModel(Model, frozen=True):
+class MeasurementsModel(FrozenModel, frozen=True):
     data_types: list[DataType] = []
     measurements: list[Measurement] = []
 

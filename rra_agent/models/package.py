@@ -6,17 +6,17 @@ default file names below.
 
 from __future__ import annotations
 
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 from rra_agent.models.system import Scheduling
 
 MANIFEST = "rra.yaml"
 
 
-class ProcessSettings(Model, frozen=True):
+class ProcessSettings(FrozenModel, frozen=True):
     scheduling: Scheduling = Scheduling()
 
 
-class Manifest(Model, frozen=True):
+class Manifest(FrozenModel, frozen=True):
     name: str
     description: str | None = None
     features: str = "features.uvl"

@@ -20,19 +20,19 @@ from typing import Literal
 
 import msgspec
 
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 from rra_agent.models.system import ParamValue, parse_endpoint
 
 Strategy = Literal["stop-then-start", "start-then-stop", "standby"]
 
 
-class SetImplementation(Model, frozen=True):
+class SetImplementation(FrozenModel, frozen=True):
     component: str
     #: A key of the component's ``implementations``.
     implementation: str
 
 
-class SetParameter(Model, frozen=True):
+class SetParameter(FrozenModel, frozen=True):
     component: str
     parameter: str
     value: ParamValue | None = None
@@ -44,7 +44,7 @@ class SetParameter(Model, frozen=True):
             raise ValueError("set_parameter needs exactly one of 'value' and 'from_attribute'")
 
 
-class ConnectionRef(Model, frozen=True):
+class ConnectionRef(FrozenModel, frozen=True):
     source: str = msgspec.field(name="from")
     target: str = msgspec.field(name="to")
 
@@ -57,7 +57,7 @@ class ConnectionRef(Model, frozen=True):
         return (self.source, self.target)
 
 
-class Transformation(Model, frozen=True):
+class Transformation(FrozenModel, frozen=True):
     """Exactly one of the fields is set."""
 
     include_component: str | None = None
@@ -80,7 +80,7 @@ class Transformation(Model, frozen=True):
         return next(f for f in self.__struct_fields__ if getattr(self, f) is not None)
 
 
-class ResolutionModel(Model, frozen=True):
+class ResolutionModel(FrozenModel, frozen=True):
     """Feature name -> transformations, applied in the feature model's order when selected."""
 
     features: dict[str, list[Transformation]] = {}
@@ -90,14 +90,14 @@ class DeploymentResolutionModel(ResolutionModel, frozen=True):
     pass
 
 
-class StateTransfer(Model, frozen=True):
+class StateTransfer(FrozenModel, frozen=True):
     """Copy the exported state of ``from`` into ``to`` when one replaces the other."""
 
     source: str = msgspec.field(name="from")
     target: str = msgspec.field(name="to")
 
 
-class Replacement(Model, frozen=True):
+class Replacement(FrozenModel, frozen=True):
     """How components are replaced at run time (the paper's second future-work item)."""
 
     default: Strategy = "stop-then-start"

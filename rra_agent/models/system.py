@@ -16,7 +16,7 @@ from typing import Literal
 
 import msgspec
 
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 
 Binding = Literal["deployment", "runtime"]
 ParamType = Literal["float", "int", "bool", "str", "list"]
@@ -24,7 +24,7 @@ ParamValue = bool | int | float | str | list
 Direction = Literal["publish", "subscribe"]
 
 
-class Command(Model, frozen=True):
+class Command(FrozenModel, frozen=True):
     """An external program run as a node (any language speaking the wire protocol)."""
 
     command: list[str]
@@ -36,7 +36,7 @@ class Command(Model, frozen=True):
 Implementation = str | Command
 
 
-class Parameter(Model, frozen=True):
+class Parameter(FrozenModel, frozen=True):
     """A typed, run-time settable component parameter."""
 
     type: ParamType
@@ -94,7 +94,7 @@ def coerce_parameter(
     return value  # type: ignore[return-value]
 
 
-class Port(Model, frozen=True):
+class Port(FrozenModel, frozen=True):
     """A data port. A publisher's samples go to ``rra/<system>/data/<topic>``; ``topic``
     defaults to ``<component>/<port>``. A subscriber listens on the topics of the publishers
     connected to it."""
@@ -105,7 +105,7 @@ class Port(Model, frozen=True):
     topic: str | None = None
 
 
-class Supervision(Model, frozen=True):
+class Supervision(FrozenModel, frozen=True):
     """How a component's process is supervised by its host agent (docs/architecture.md,
     failure model). Times in seconds.
 
@@ -139,7 +139,7 @@ class Supervision(Model, frozen=True):
             raise ValueError("max_restarts must be at least 1")
 
 
-class Scheduling(Model, frozen=True):
+class Scheduling(FrozenModel, frozen=True):
     """How the kernel schedules a component's process, applied by its host agent at start
     (before the node runs any of its code; every thread it starts inherits it).
 
@@ -173,7 +173,7 @@ class Scheduling(Model, frozen=True):
         return self == Scheduling()
 
 
-class Component(Model, frozen=True):
+class Component(FrozenModel, frozen=True):
     name: str
     implementation: Implementation
     #: Named alternative implementations, selectable by a ``set_implementation`` transformation.
@@ -206,7 +206,7 @@ class Component(Model, frozen=True):
         return next((p for p in self.ports if p.name == name), None)
 
 
-class Endpoint(Model, frozen=True):
+class Endpoint(FrozenModel, frozen=True):
     """``component.port`` parsed."""
 
     component: str
@@ -223,7 +223,7 @@ def parse_endpoint(text: str) -> Endpoint:
     return Endpoint(component=comp, port=port)
 
 
-class Connection(Model, frozen=True):
+class Connection(FrozenModel, frozen=True):
     """A publisher port feeding a subscriber port (``from``/``to`` as ``component.port``)."""
 
     source: str = msgspec.field(name="from")
@@ -242,14 +242,14 @@ class Connection(Model, frozen=True):
         return (self.source, self.target)
 
 
-class Host(Model, frozen=True):
+class Host(FrozenModel, frozen=True):
     name: str
     #: Zenoh endpoint of the host agent, e.g. ``tcp/127.0.0.1:7448``; None = this machine.
     endpoint: str | None = None
     description: str | None = None
 
 
-class SystemModel(Model, frozen=True):
+class SystemModel(FrozenModel, frozen=True):
     """A Template (or Configured) System Model."""
 
     system: str

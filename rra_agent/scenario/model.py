@@ -35,7 +35,7 @@ from rra_agent.core.features import complete_deployment, default_runtime_selecti
 from rra_agent.core.resolution import peers_of, resolve_deployment, topic_of
 from rra_agent.deployment import Deployment
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
-from rra_agent.models.base import Model
+from rra_agent.models.base import FrozenModel
 from rra_agent.models.loader import load_package
 from rra_agent.models.resolution import Replacement
 from rra_agent.models.system import parse_endpoint
@@ -63,14 +63,14 @@ LINK_ACTIONS = ("cut_link", "restore_link")
 
 
 # ---- timeline steps --------------------------------------------------------------------------
-class SetParamsStep(Model, frozen=True, kw_only=True):
+class SetParamsStep(FrozenModel, frozen=True, kw_only=True):
     """Set parameters of a running node (a ``SetParams`` control request)."""
 
     node: str
     params: dict[str, Any]
 
 
-class PublishStep(Model, frozen=True, kw_only=True):
+class PublishStep(FrozenModel, frozen=True, kw_only=True):
     """Publish a data sample on a publisher port's topic, as if its component had."""
 
     #: ``component.port`` (a publisher port of the package's system model).
@@ -82,7 +82,7 @@ class PublishStep(Model, frozen=True, kw_only=True):
     until: Seconds | None = None
 
 
-class MalformedStep(Model, frozen=True, kw_only=True):
+class MalformedStep(FrozenModel, frozen=True, kw_only=True):
     """Publish bytes that are not a valid sample: on a port's topic or on any key of the
     system (``key`` relative to ``rra/<system>/``, e.g. ``ctx/BattLev`` or ``selection``)."""
 
@@ -100,7 +100,7 @@ class MalformedStep(Model, frozen=True, kw_only=True):
             raise ValueError(f"'hex' is not hex digits: {self.hex!r}") from None
 
 
-class InjectStep(Model, frozen=True, kw_only=True):
+class InjectStep(FrozenModel, frozen=True, kw_only=True):
     """A fault for a simulator (an ``Inject`` message on ``rra/<system>/inject/<kind>``)."""
 
     kind: Name
@@ -108,7 +108,7 @@ class InjectStep(Model, frozen=True, kw_only=True):
     args: dict[str, Any] = {}
 
 
-class Step(Model, frozen=True, kw_only=True):
+class Step(FrozenModel, frozen=True, kw_only=True):
     """One timeline entry: at ``at`` seconds after deployment, exactly one action."""
 
     at: Seconds
@@ -148,7 +148,7 @@ class Step(Model, frozen=True, kw_only=True):
 
 
 # ---- the scenario ---------------------------------------------------------------------------
-class Case(Model, frozen=True, kw_only=True):
+class Case(FrozenModel, frozen=True, kw_only=True):
     """A variant of the scenario: overrides its settings, adds steps and expectations."""
 
     name: Name
@@ -162,7 +162,7 @@ class Case(Model, frozen=True, kw_only=True):
     expect: list[str] = []
 
 
-class Scenario(Model, frozen=True, kw_only=True):
+class Scenario(FrozenModel, frozen=True, kw_only=True):
     """A ``*.scenario.yaml`` file."""
 
     name: Name

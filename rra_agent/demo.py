@@ -157,9 +157,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo.rrd", help="the Rerun recording (default demo.rrd)")
     p.add_argument(
         "--strategy",
-        choices=("standby", "start-then-stop", "stop-then-start"),
-        default="standby",
-        help="how the Proploss controller replaces the standard one (default standby)",
+        choices=("hot-standby", "standby", "start-then-stop", "stop-then-start"),
+        default="hot-standby",
+        help="how the Proploss controller replaces the standard one (default hot-standby, "
+        "as scenarios/quadcopter has it)",
     )
     p.add_argument("--no-adaptation", action="store_true", help="the control case: no RRA")
     p.add_argument("--run-dir", help="logs of the run (default: .rra/demo-<time>)")

@@ -74,9 +74,19 @@ class Transport(Protocol):
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None: ...
 
-    def rebind(self, port: str, direction: str, keys: list[str]) -> None: ...
+    def rebind(
+        self, port: str, direction: str, keys: list[str], standby: list[str] | None = None
+    ) -> None:
+        """Bind ``port`` to ``keys``; a subscriber port also listens on its ``standby`` keys,
+        whose samples go to `NodeCore.hold` instead of `NodeCore.deliver`."""
+        ...
 
     def subscribe(self, key_expr: str, callback: RawCallback) -> None: ...
+
+
+#: A hot standby's held sample older than this (seconds) is not delivered at the switch: a
+#: consumer switched to a producer that went quiet must not act on a stale value.
+REPLAY_MAX_AGE = 0.1
 
 
 class NodeContext:
@@ -254,6 +264,9 @@ class NodeCore:
             kind = _kind_of(value)
             if name not in self.decl and kind is not None:
                 self.decl[name] = m.ParamDecl(type=kind)
+        #: The newest sample of each standby key not selected: (port, key) -> (payload, stamp,
+        #: arrival on ``clock``), delivered when a `Rewire` selects the key.
+        self._held: dict[tuple[str, str], tuple[bytes, float | None, float]] = {}
         self.counters = Counters()
         self.published = 0
         self.errors = 0
@@ -307,6 +320,22 @@ class NodeCore:
             except Exception as e:  # a bug in node code must not reach the bus callback
                 self.errors += 1
                 self.log(f"on_message raised {type(e).__name__}: {e}")
+
+    def hold(self, port: str, key: str, payload: bytes, stamp: float | None) -> None:
+        """A sample on a standby key of ``port`` (a hot standby's output): delivered if the
+        key is selected by now, else kept, the newest only, for the switch to it."""
+        with self.lock:
+            if key in self.ports[port].keys:
+                self.deliver(port, payload, stamp)
+            else:
+                self._held[(port, key)] = (payload, stamp, self.clock())
+
+    def _replay(self, port: str, keys: Iterable[str]) -> None:
+        """Deliver the held samples of newly selected ``keys`` (if young enough)."""
+        for key in keys:
+            held = self._held.pop((port, key), None)
+            if held is not None and self.clock() - held[2] <= REPLAY_MAX_AGE:
+                self.deliver(port, held[0], held[1])
 
     def _drop(self, port: str, why: str) -> None:
         with self.lock:
@@ -434,8 +463,15 @@ class NodeCore:
             raise NodeError(f"node {self.spec.name} has no port {port!r} (known: {known})")
         if p.direction == "publish" and len(keys) != 1:
             raise NodeError(f"output port {port!r} publishes on exactly one key, got {keys}")
-        self.transport.rebind(port, p.direction, list(keys))
         self.ports[port] = msgspec.structs.replace(p, keys=list(keys))
+        try:
+            # A switch to a hot standby: its held sample first (the reason it is hot), then
+            # the bindings (dropping the old producer's key costs the switch nothing).
+            self._replay(port, [k for k in keys if k not in p.keys])
+            self.transport.rebind(port, p.direction, list(keys), list(p.standby))
+        except Exception:
+            self.ports[port] = p
+            raise
 
     def _set_active(self, active: bool) -> None:
         if active != self.active:
@@ -451,7 +487,13 @@ class NodeCore:
             active=self.active,
             params=dict(self.params),
             ports=[
-                m.PortInfo(name=n, direction=p.direction, type=p.type, keys=list(p.keys))
+                m.PortInfo(
+                    name=n,
+                    direction=p.direction,
+                    type=p.type,
+                    keys=list(p.keys),
+                    standby=list(p.standby),
+                )
                 for n, p in self.ports.items()
             ],
             received=self.counters.received,
@@ -492,7 +534,9 @@ class _CaptureTransport:
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
         self.published.append((port, payload, stamp))
 
-    def rebind(self, port: str, direction: str, keys: list[str]) -> None:
+    def rebind(
+        self, port: str, direction: str, keys: list[str], standby: list[str] | None = None
+    ) -> None:
         self.bindings[port] = keys
 
     def subscribe(self, key_expr: str, callback: RawCallback) -> None:

@@ -302,3 +302,71 @@ def test_an_outgoing_standby_node_is_kept_when_its_replacement_starts_cold(quad)
     assert ("active", "proploss_controller", True) in act.calls
     assert ("active", "controller", False) in act.calls
     assert set(ex.standby) == {"controller"}
+
+
+def hot_executor(quad, transfer: bool = True) -> tuple[Executor, FakeActuator]:
+    """Proploss as a hot standby: the simulator's spec listens to its output in advance."""
+    configured, target = quad
+    act = FakeActuator()
+    rep = Replacement(
+        components={"proploss_controller": "hot-standby"},
+        state_transfer=[StateTransfer(source="controller", target="proploss_controller")]
+        if transfer
+        else [],
+    )
+    held = r.standby_subscriptions(configured, ["proploss_controller"])
+    ex = Executor(act, K, rep, default_host="local", standby_inputs=held)
+    deploy(ex, act, target("Standard"))
+    swap = swap_plan(target).steps[0]
+    pre = spec_for(K, swap.definition, dict(swap.inputs), dict(swap.outputs), default_host="l")
+    assert ex.prestart_standby([pre]).ok
+    return ex, act
+
+
+def test_a_hot_standby_runs_active_and_its_consumer_listens_in_advance(quad):
+    ex, act = hot_executor(quad)
+    assert act.calls == [("start", "proploss_controller", True, None)]
+    sim = ex.running["vehicle_simulator"].ports["motor_cmd"]
+    assert sim.keys == [K.data("controller/motor_cmd")]
+    assert sim.standby == [K.data("proploss_controller/motor_cmd")]
+    # only the consumers of the hot standby's outputs listen in advance
+    assert not ex.running["estimator"].ports["state"].standby
+
+
+def test_a_hot_standby_switch_is_the_consumer_s_rewire_then_the_state(quad):
+    """No activation (it runs already): the simulator's rewire is the switch; the state of
+    the controller follows as an import; the controller is stopped, not deactivated."""
+    _, target = quad
+    ex, act = hot_executor(quad)
+    act.calls.clear()
+    act.batches.clear()
+    assert ex.execute(swap_plan(target)).ok
+    assert [c[0] for c in act.calls] == ["rewire", "export", "import", "stop"], act.calls
+    assert act.calls[0] == ("rewire", "vehicle_simulator", "motor_cmd",
+                            (K.data("proploss_controller/motor_cmd"),))  # fmt: skip
+    assert act.calls[2] == ("import", "proploss_controller", {"integral": 1.5})
+    sim = ex.running["vehicle_simulator"].ports["motor_cmd"]
+    assert sim.standby == [K.data("proploss_controller/motor_cmd")]  # kept for restarts
+    assert ex.running["proploss_controller"].active and not ex.standby
+
+
+def test_a_hot_standby_swapped_out_stays_active_for_the_way_back(quad):
+    _, target = quad
+    configured, _ = quad
+    act = FakeActuator()
+    hot = ["proploss_controller", "controller"]
+    rep = Replacement(components=dict.fromkeys(hot, "hot-standby"))
+    ex = Executor(act, K, rep, default_host="local",
+                  standby_inputs=r.standby_subscriptions(configured, hot))  # fmt: skip
+    deploy(ex, act, target("Standard"))
+    swap = swap_plan(target).steps[0]
+    pre = spec_for(K, swap.definition, dict(swap.inputs), dict(swap.outputs), default_host="l")
+    ex.prestart_standby([pre])
+    act.calls.clear()
+    assert ex.execute(swap_plan(target)).ok
+    assert not any(c[0] in ("stop", "active") for c in act.calls), act.calls
+    assert set(ex.standby) == {"controller"} and ex.standby["controller"].active
+    act.calls.clear()
+    assert ex.execute(r.diff(target("Proploss"), target("Standard"))).ok
+    assert [c[0] for c in act.calls] == ["rewire"], act.calls
+    assert set(ex.standby) == {"proploss_controller"}

@@ -102,6 +102,30 @@ def test_an_inactive_standby_candidate_stays_on_standby(world):
     assert plan.empty and set(standby) == {"filtered"}
 
 
+def test_an_active_hot_standby_stays_on_standby_and_an_active_plain_one_is_stopped(world):
+    """A hot standby runs active (it publishes on keys its consumers do not select yet): a
+    new leader adopts it as a standby. An active node that should be a plain standby is not
+    one (it would publish), nor is an inactive node that should be hot (its consumers would
+    wait for samples that never come)."""
+    target, expected = world
+    tgt = target("Direct")
+    want = expected(tgt)
+    comp = next(c for c in target("Filtered").components if c.name == "filtered")
+
+    def filtered(active: bool) -> m.NodeSpec:
+        return spec_for(K, comp, {"in": ("source/out",)}, {"out": "filtered/out"},
+                        default_host="local", active=active)  # fmt: skip
+
+    seen = Observed({**want, "filtered": filtered(True)})
+    plan, _, standby = takeover_plan(seen, want, tgt, {"filtered"}, {"filtered"})
+    assert plan.empty and set(standby) == {"filtered"}
+    plan, _, standby = takeover_plan(seen, want, tgt, {"filtered"})
+    assert kinds(plan) == [("StopComponent", "filtered")] and not standby
+    seen = Observed({**want, "filtered": filtered(False)})
+    plan, _, standby = takeover_plan(seen, want, tgt, {"filtered"}, {"filtered"})
+    assert kinds(plan) == [("StopComponent", "filtered")] and not standby
+
+
 def test_spec_from_describe_round_trips(world):
     target, expected = world
     want = expected(target("Direct"))["sink"]

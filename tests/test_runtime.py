@@ -153,6 +153,50 @@ def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(syste
         sub.undeclare()
 
 
+def test_a_hot_standby_switch_is_one_rewire_that_delivers_its_held_output(system, tmp_path):
+    """``filtered`` as a hot standby runs active from deployment, publishing on its own key,
+    which the sink listens to without delivering. The switch starts no process and
+    activates nothing: the sink's rewire delivers the output ``filtered`` made of the tick
+    that carried Level 7 (held by the sink), not the next tick's (5 s later)."""
+    from rra_agent.node import decode_data
+
+    pkg = package_copy(tmp_path)
+    hot = {"filtered": "hot-standby"}
+    edit_yaml(pkg / "runtime.yaml", lambda d: d["replacement"].update(components=hot))
+    edit_yaml(pkg / "system.yaml", lambda d: d["components"][0]["parameters"]["rate_hz"]
+              .update(value=0.2))  # fmt: skip
+    edit_yaml(pkg / "measurements.yaml",
+              lambda d: d["measurements"][0].update(max_age_ms=60000))  # fmt: skip
+    sys_ = system(pkg)
+    st = sys_.status
+    assert st["engine"]["standby"] == ["filtered"]
+    filtered_pid = sys_.node(st, "filtered")["pid"]
+    assert sys_.ctl("filtered", m.Describe()).result["active"] is True
+    sink_in = next(p for p in sys_.ctl("sink", m.Describe()).result["ports"] if p["name"] == "in")
+    assert sink_in["keys"] == [K.data("direct/out")]
+    assert sink_in["standby"] == [K.data("filtered/out")]
+    out: list[dict] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
+    )
+    try:
+        sys_.set_level(7.0)
+        wait_until(lambda: any(o["value"] >= 100 for o in ticks(out)), 30,
+                   "a sample through filtered")  # fmt: skip
+        first = next(o for o in ticks(out) if o["value"] >= 100)
+        trigger = [o for o in ticks(out) if 7 <= o["value"] < 100]
+        assert trigger, out
+        assert first["seq"] == trigger[-1]["seq"], out  # held and delivered, not the next tick
+        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the switch")
+        assert sys_.node(st, "filtered")["pid"] == filtered_pid
+        swap = next(e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+                    and any("rewire in of sink" in p for p in e.plan))  # fmt: skip
+        assert not any(p.startswith(("start ", "activate ")) for p in swap.plan), swap.plan
+        assert any(p.startswith("select filtered") for p in swap.plan), swap.plan
+    finally:
+        sub.undeclare()
+
+
 def test_a_swap_inside_a_component_container(system, tmp_path):
     """direct, filtered (standby) and sink in one container: the Run-time Resolution Engine
     swaps and rewires them as it does processes; the switch is an activation inside the

@@ -2,10 +2,14 @@
 
 Runs the quadcopter motor-failure scenario (hover at 2 m, motor 2 breaks) N times for each
 of: ``standby`` (the Proploss controller pre-started inactive: switch = activation + rewire),
-``stop-then-start`` (cold: stop the controller, start the Proploss controller), and
-``delayed 0.5 s`` (standby, but the resolution engine waits 0.5 s before executing: the
-paper's figure, emulated with ``RRA_EMULATED_SWAP_DELAY``). Every run is a real system under
-``rra up``; the figures come from what was recorded on the bus (`rra_agent.demo`).
+``hot-standby`` (pre-started active, publishing on its own key, which the simulator listens
+to without delivering: switch = one rewire of the simulator, which applies the newest held
+command at once), ``stop-then-start`` (cold: stop the controller, start the Proploss
+controller), and ``delayed 0.5 s`` (standby, but the resolution engine waits 0.5 s before
+executing: the paper's figure, emulated with ``RRA_EMULATED_SWAP_DELAY``). Every run is a
+real system under ``rra up``. The latency and the crash come from the simulator's own trace
+marks (fault, first physics step driven by a Proploss command, crash); the altitude lost from
+the recording (`rra_agent.demo`).
 
 Each strategy runs twice: as scenarios/quadcopter is (no scheduling) and with its critical
 path on real time (``fifo``: a copy with ``scheduling: {policy: fifo, priority: 50}`` on the
@@ -52,6 +56,7 @@ FAULT_AT = 3.0
 DURATION = 6.0
 STRATEGIES = {
     "standby": ("standby", 0.0),
+    "hot-standby": ("hot-standby", 0.0),
     "stop-then-start": ("stop-then-start", 0.0),
     "delayed 0.5 s": ("standby", 0.5),
 }
@@ -59,6 +64,8 @@ STRATEGIES = {
 GOALS = {
     ("standby", False): (5.0, 8.0),
     ("standby", True): (8.0, 15.0),
+    ("hot-standby", False): (5.0, 8.0),
+    ("hot-standby", True): (8.0, 15.0),
     ("stop-then-start", False): (50.0, None),
     ("stop-then-start", True): (50.0, None),
 }
@@ -79,6 +86,11 @@ PHASES = {
         ("connect (rewire, export state)", "engine:replied"),
         ("activate (-> first command sent)", "node:activated_publish"),
         *_SIM,
+    ],
+    "hot-standby": [
+        *_ENGINES,
+        ("select (consumer rewired, held command delivered)", "sim:command_from"),
+        ("first physics step with it", "sim:commanded_by"),
     ],
     "stop-then-start": [
         *_ENGINES,
@@ -139,6 +151,31 @@ def phases(path: Path, strategy: str) -> dict[str, float]:
     return out
 
 
+def from_trace(path: Path) -> tuple[float | None, bool]:
+    """Fault -> first physics step driven by a Proploss command (seconds), and whether the
+    vehicle crashed, as the simulator itself marked them (``sim:fault``,
+    ``sim:commanded_by``, ``sim:crash``). The simulator's own marks, not the scenario's
+    recording: under load a normal-priority recorder beside real-time processes can fall
+    behind the window, and its samples' arrival says nothing of the switch."""
+    if not path.exists():
+        return None, False
+    lines = trace.read(path)
+    t_fault = next((float(x["t"]) for x in lines if x["what"] == "sim:fault"), None)
+    if t_fault is None:
+        return None, False
+    after = [x for x in lines if float(x["t"]) >= t_fault]
+    first = next(
+        (
+            float(x["t"])
+            for x in after
+            if x["what"] == "sim:commanded_by" and "proploss" in str(x["node"])
+        ),
+        None,
+    )
+    crashed = any(x["what"] == "sim:crash" for x in after)
+    return (None if first is None else first - t_fault), crashed
+
+
 def make_case(strategy: str, package: Path | None = None):
     """The adaptive case, shortened (fault at 3 s, 6 s long), with ``strategy``."""
     sf = load_scenario(SCENARIO)
@@ -189,6 +226,11 @@ def one_run(case, delay: float, run_dir: Path):
     if result.recording is None:
         raise RunFailed(str(result.error))
     report = recovery_report(result.recording, setpoint=2.0)
+    latency, crashed = from_trace(trace_file)
+    if latency is not None:
+        report.first_proploss_command = latency
+    if crashed:
+        report.airborne = False
     strategy = case.replacement.components.get("proploss_controller", "")
     return report, result.recording, phases(trace_file, strategy) if trace_file.exists() else {}
 

@@ -239,6 +239,8 @@ class PortInfo(Msg, tag="port"):
     direction: Literal["publish", "subscribe"]
     type: str
     keys: list[str]
+    #: Keys listened to without delivering (hot standbys' outputs), see `PortSpec.standby`.
+    standby: list[str] = []
 
 
 class NodeInfo(Msg, tag="node_info"):
@@ -297,6 +299,10 @@ class PortSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     type: str
     #: Publisher: the one key it publishes on. Subscriber: the keys it listens on.
     keys: list[str] = []
+    #: Subscriber: keys also listened to but not delivered until a `Rewire` selects them (the
+    #: outputs of hot standbys); the newest sample of each is held and delivered at the switch
+    #: if it is younger than `REPLAY_MAX_AGE`.
+    standby: list[str] = []
 
 
 class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):

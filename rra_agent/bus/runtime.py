@@ -113,25 +113,39 @@ class ZenohTransport:
         self.session = session
         self.core: NodeCore | None = None
         self.publishers: dict[str, zenoh.Publisher] = {}
-        self.subscribers: dict[str, list[Any]] = {}
+        #: port -> key -> (held?, subscriber): a standby key's subscriber hands its samples
+        #: to `NodeCore.hold`, the others to `NodeCore.deliver`.
+        self.subscribers: dict[str, dict[str, tuple[bool, Any]]] = {}
         #: Raw subscriptions (`NodeContext.subscribe`), undeclared when the session closes.
         self.raw: list[Any] = []
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
         self.publishers[port].put(payload, attachment=_STAMP.pack(stamp))
 
-    def rebind(self, port: str, direction: str, keys: list[str]) -> None:
+    def rebind(
+        self, port: str, direction: str, keys: list[str], standby: list[str] | None = None
+    ) -> None:
         if direction == "publish":
             old = self.publishers.pop(port, None)
             self.publishers[port] = data_publisher(self.session, keys[0])
             if old is not None:
                 old.undeclare()
             return
-        for sub in self.subscribers.pop(port, []):
+        held = set(standby or ())
+        old_subs = self.subscribers.pop(port, {})
+        subs: dict[str, tuple[bool, Any]] = {}
+        for k in dict.fromkeys([*keys, *held]):
+            prev = old_subs.pop(k, None)
+            if prev is not None and prev[0] == (k in held):
+                subs[k] = prev  # listening already: no gap, no re-declaration
+                continue
+            if prev is not None:
+                prev[1].undeclare()
+            cb = self._on_held(port, k) if k in held else self._on_sample(port)
+            subs[k] = (k in held, self.session.declare_subscriber(k, cb))
+        for _, sub in old_subs.values():
             sub.undeclare()
-        self.subscribers[port] = [
-            self.session.declare_subscriber(k, self._on_sample(port)) for k in keys
-        ]
+        self.subscribers[port] = subs
 
     def close(self) -> None:
         """Undeclare every publisher and subscriber (a component unloaded from a container;
@@ -139,7 +153,7 @@ class ZenohTransport:
         self.core = None
         for pub in self.publishers.values():
             pub.undeclare()
-        for sub in [s for subs in self.subscribers.values() for s in subs] + self.raw:
+        for sub in [s for subs in self.subscribers.values() for _, s in subs.values()] + self.raw:
             sub.undeclare()
         self.publishers.clear()
         self.subscribers.clear()
@@ -165,6 +179,19 @@ class ZenohTransport:
             att = sample.attachment
             stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
             core.deliver(port, sample.payload.to_bytes(), stamp)
+
+        return callback
+
+    def _on_held(self, port: str, key: str):
+        unpack = _STAMP.unpack
+
+        def callback(sample: zenoh.Sample) -> None:
+            core = self.core
+            if core is None:
+                return
+            att = sample.attachment
+            stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
+            core.hold(port, key, sample.payload.to_bytes(), stamp)
 
         return callback
 
@@ -208,7 +235,7 @@ class NodeRuntime:
                 pid=os.getpid(),
             )
             for name, port in core.ports.items():
-                transport.rebind(name, port.direction, list(port.keys))
+                transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = session.declare_queryable(
                 self.keys.node_ctl(self.spec.name), self._on_query(core)
             )

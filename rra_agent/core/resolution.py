@@ -42,7 +42,7 @@ one into the other's; `topic_of` and `subscriptions` define how connections map 
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterator, Mapping
+from collections.abc import Collection, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Literal, TypeVar
 
@@ -82,6 +82,7 @@ __all__ = [
     "peers_of",
     "resolve_deployment",
     "resolve_runtime",
+    "standby_subscriptions",
     "subscriptions",
     "topic_of",
     "wiring",
@@ -511,6 +512,23 @@ def subscriptions(system: SystemModel) -> dict[tuple[str, str], tuple[str, ...]]
             )
         topics[key].add(topic_of(system, src.component, src.port))
     return {k: tuple(sorted(v)) for k, v in topics.items()}
+
+
+def standby_subscriptions(
+    system: SystemModel, hot: Iterable[str]
+) -> dict[str, dict[str, tuple[str, ...]]]:
+    """component -> subscriber port -> the sorted topics of the ``hot`` components connected
+    to it in ``system`` (the deployment-time configured model, optional connections included):
+    what each consumer listens to in advance, without delivering, so that switching it to a
+    hot standby is a selection, not a new subscription."""
+    hot = set(hot)
+    out: dict[str, dict[str, set[str]]] = {}
+    for conn in system.connections:
+        src, dst = parse_endpoint(conn.source), parse_endpoint(conn.target)
+        if src.component in hot and dst.component not in hot:
+            topics = out.setdefault(dst.component, {}).setdefault(dst.port, set())
+            topics.add(topic_of(system, src.component, src.port))
+    return {c: {p: tuple(sorted(t)) for p, t in ports.items()} for c, ports in out.items()}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -46,7 +46,7 @@ from rra_agent.bus.keys import Keys
 from rra_agent.bus.messages import NodeSpec, ParamDecl, PortSpec
 from rra_agent.core import resolution as r
 from rra_agent.errors import RraError
-from rra_agent.models.resolution import Replacement
+from rra_agent.models.resolution import PRE_STARTED, Replacement
 from rra_agent.models.system import Component
 
 
@@ -129,9 +129,11 @@ def spec_for(
     active: bool = True,
     state: Any = None,
     path: tuple[str, ...] = (),
+    standby: dict[str, tuple[str, ...]] | None = None,
 ) -> NodeSpec:
     """The `NodeSpec` that runs component ``c`` with the given wiring (topics -> keys);
-    ``path``: folders its implementation is imported from first (the system package's)."""
+    ``path``: folders its implementation is imported from first (the system package's);
+    ``standby``: per subscriber port, the topics of hot standbys it may be switched to."""
     ports: dict[str, PortSpec] = {}
     for p in c.ports:
         if p.direction == "publish":
@@ -139,8 +141,12 @@ def spec_for(
             ports[p.name] = PortSpec(direction="publish", type=p.type, keys=[keys.data(topic)])
         else:
             topics = inputs.get(p.name, ())
+            held = (standby or {}).get(p.name, ())
             ports[p.name] = PortSpec(
-                direction="subscribe", type=p.type, keys=[keys.data(t) for t in topics]
+                direction="subscribe",
+                type=p.type,
+                keys=[keys.data(t) for t in topics],
+                standby=[keys.data(t) for t in held],
             )
     return NodeSpec(
         system=keys.system,
@@ -214,22 +220,27 @@ class Executor:
         default_host: str,
         path: tuple[str, ...] = (),
         clock: Callable[[], float] = time.monotonic,
+        standby_inputs: dict[str, dict[str, tuple[str, ...]]] | None = None,
     ) -> None:
         self.actuator = actuator
         self.path = path
+        #: component -> subscriber port -> topics of hot standbys it listens to in advance
+        #: (`rra_agent.core.resolution.standby_subscriptions`).
+        self.standby_inputs = standby_inputs or {}
         self.keys = keys
         self.replacement = replacement
         self.default_host = default_host
         self.clock = clock
         #: Nodes of the Run-time Configured System Model, by name.
         self.running: dict[str, NodeSpec] = {}
-        #: Pre-started, inactive replacements (``standby`` strategy), by name.
+        #: Pre-started replacements, by name: inactive (``standby``) or active on keys their
+        #: consumers do not select yet (``hot-standby``).
         self.standby: dict[str, NodeSpec] = {}
 
     # ---- public ------------------------------------------------------------------------
     def prestart_standby(self, specs: list[NodeSpec]) -> Outcome:
-        """Start standby replacements inactive (at deployment time)."""
-        specs = [msgspec.structs.replace(s, active=False) for s in specs]
+        """Start standby replacements (at deployment time): inactive, or active if hot."""
+        specs = [msgspec.structs.replace(s, active=self.replacement.hot(s.name)) for s in specs]
         tx = Transaction(self.clock)
         t0 = self.clock()
         try:
@@ -315,11 +326,15 @@ class Executor:
         cold = self._prepare(tx, swaps, restarts)
         warm = [w for w in swaps if w.strategy != "stop-then-start"]
         states = self._connect(tx, warm, steps)
+        hot = [w.new.name for w in warm if self.replacement.hot(w.new.name)]
+        if hot:  # the consumers' rewire was the switch: say so in the plan
+            self._switched = self.clock()
+            tx.records.append(StepRecord("select", ",".join(hot), 0.0, True))
         if cold:
             self._start(tx, cold)
             self._switched = self.clock()
         self._switch(tx, warm, steps, states)
-        retire = [w for w in warm if self.replacement.strategy_for(w.old.name) != "standby"]
+        retire = [w for w in warm if not self.replacement.pre_started(w.old.name)]
         stops = [self.running[s.component] for s in steps if isinstance(s, r.StopComponent)]
         stops += [self.running[w.old.name] for w in retire]
         for w in warm:  # a swapped-out standby node stays, inactive, for the way back
@@ -336,20 +351,19 @@ class Executor:
             dict(s.outputs),
             default_host=self.default_host,
             path=self.path,
+            standby=self.standby_inputs.get(s.definition.name),
             **kw,
         )
 
     def _plan_swap(self, s: r.SwapComponent) -> _Swap:
         strategy = self.replacement.strategy_for(s.replacement)
-        if strategy == "standby" and s.replacement not in self.standby:
+        if strategy in PRE_STARTED and s.replacement not in self.standby:
             strategy = "start-then-stop"  # nothing pre-started: make before break
-        if strategy == "stop-then-start" and self.replacement.strategy_for(s.component) == (
-            "standby"
-        ):
+        if strategy == "stop-then-start" and self.replacement.pre_started(s.component):
             # The outgoing node stays, inactive, for the way back: it is never stopped, so
             # its replacement starts inactive and takes over in the switch.
             strategy = "start-then-stop"
-        new = self.standby.get(s.replacement) if strategy == "standby" else None
+        new = self.standby.get(s.replacement) if strategy in PRE_STARTED else None
         if new is None:
             new = self._spec(s, active=strategy == "stop-then-start")
         return _Swap(s, self.running[s.component], new, strategy)
@@ -369,7 +383,7 @@ class Executor:
         if mbb:
             self._start(tx, mbb)
         for w in swaps:
-            if w.strategy == "standby":
+            if w.strategy in PRE_STARTED:
                 self.running[w.new.name] = self.standby.pop(w.new.name)
         if restarts:
             self._stop(tx, [self.running[s.component] for s in restarts])
@@ -422,7 +436,11 @@ class Executor:
     def _switch(self, tx: Transaction, warm: list[_Swap], steps, states: list[Any]) -> None:
         batch: list[Ctl] = []
         for w, state in zip(warm, states, strict=True):
-            batch.append(self._activation(self.running[w.new.name], True, state))
+            new = self.running[w.new.name]
+            if not new.active:
+                batch.append(self._activation(new, True, state))
+            elif state is not None:  # a hot standby: it runs already, and takes the state
+                batch.append(Ctl(new, m.ImportState(state=state), new, None))
             if self._must_deactivate(w):
                 batch.append(self._activation(self.running[w.old.name], False))
         for s in steps:
@@ -437,18 +455,20 @@ class Executor:
         if not batch:
             return
         self._control(tx, "switch", batch)
-        if warm:
+        if warm and self._switched is None:
             self._switched = self.clock()
 
     def _must_deactivate(self, w: _Swap) -> bool:
         """An old node that is stopped after the switch and publishes on other keys than its
         replacement needs no deactivation: the rewire of its subscribers, in the connect
-        batch, already cut it off. One that stays (standby) or shares output keys does."""
-        if self.replacement.strategy_for(w.old.name) == "standby":
-            return True
+        batch, already cut it off. One that stays (standby) or shares output keys does; one
+        that stays hot goes on publishing on its own keys, which its consumers deselected."""
         old_out = {k for p in w.old.ports.values() if p.direction == "publish" for k in p.keys}
         new_out = {k for p in w.new.ports.values() if p.direction == "publish" for k in p.keys}
-        return bool(old_out & new_out)
+        shared = bool(old_out & new_out)
+        if self.replacement.hot(w.old.name):
+            return shared
+        return shared or self.replacement.pre_started(w.old.name)
 
     def _activation(self, spec: NodeSpec, active: bool, state: Any = None) -> Ctl:
         req = m.Activate(state=state) if active else m.Deactivate()

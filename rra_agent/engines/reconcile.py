@@ -25,6 +25,7 @@ The first deployment is the case where nothing runs yet.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,7 +63,12 @@ def spec_from_info(info: dict[str, Any], template: m.NodeSpec) -> m.NodeSpec:
     gives it: declarations, supervision, import path) with the live implementation, host,
     parameters, port bindings and active flag."""
     ports = {
-        p["name"]: m.PortSpec(direction=p["direction"], type=p["type"], keys=list(p["keys"]))
+        p["name"]: m.PortSpec(
+            direction=p["direction"],
+            type=p["type"],
+            keys=list(p["keys"]),
+            standby=list(p.get("standby", ())),
+        )
         for p in info["ports"]
     }
     reported = info["implementation"]
@@ -141,10 +147,12 @@ def takeover_plan(
     expected: dict[str, m.NodeSpec],
     target: SystemModel,
     keep_standby: set[str],
+    hot: Collection[str] = (),
 ) -> tuple[r.Plan, dict[str, m.NodeSpec], dict[str, m.NodeSpec]]:
     """The plan from what runs to ``target``, and the nodes to hand the executor as already
     running and as standby. ``expected``: the spec each target component should run with;
-    ``keep_standby``: components that may stay running inactive as standby replacements."""
+    ``keep_standby``: components that may stay running inactive as standby replacements, or
+    active if they are in ``hot`` (hot standbys)."""
     subs = r.subscriptions(target)
     by_name = {c.name: c for c in target.components}
     running: dict[str, m.NodeSpec] = {}
@@ -159,7 +167,7 @@ def takeover_plan(
             running[name] = expected[name]
         elif name in keep_standby:
             st = observed.states.get(name)
-            if st is not None and not st.active:
+            if st is not None and st.active == (name in hot):
                 standby[name] = _placeholder(target.system, st)
         elif name in observed.states and name not in unreachable:
             st = observed.states[name]
@@ -170,7 +178,7 @@ def takeover_plan(
         if name in expected:
             running[name] = seen
             steps += _reconcile(seen, expected[name], by_name[name], subs)
-        elif name in keep_standby and not seen.active:
+        elif name in keep_standby and seen.active == (name in hot):
             standby[name] = seen
         else:
             running[name] = seen

@@ -141,14 +141,14 @@ class ResolutionEngine(EngineProcess):
         return r.with_parameters(model, self.overrides)
 
     def standby_specs(self, target: SystemModel) -> list[m.NodeSpec]:
-        """Run-time components with the ``standby`` strategy not in ``target``: pre-start
-        them wired as the configured model connects them to what runs."""
+        """Run-time components with the ``standby`` or ``hot-standby`` strategy not in
+        ``target``: pre-start them wired as the configured model connects them to what runs."""
         running = {c.name for c in target.components}
         rep = self.dep.package.runtime.replacement
         standby = [
             c
             for c in r.with_parameters(self.dep.configured, self.overrides).components
-            if c.name not in running and rep.strategy_for(c.name) == "standby"
+            if c.name not in running and rep.pre_started(c.name)
         ]
         return self._specs(self.dep.configured, standby)
 
@@ -156,10 +156,22 @@ class ResolutionEngine(EngineProcess):
         """The specs that run ``components`` wired as ``model`` connects them."""
         subs = r.subscriptions(model)
         path = (str(self.dep.package.root),)
+        held = self.standby_inputs
         return [
-            spec_for(self.keys, c, **r.wiring(c, subs), default_host=self.host, path=path)
+            spec_for(
+                self.keys, c, **r.wiring(c, subs), default_host=self.host, path=path,
+                standby=held.get(c.name),
+            )
             for c in components
-        ]
+        ]  # fmt: skip
+
+    @property
+    def standby_inputs(self) -> dict[str, dict[str, tuple[str, ...]]]:
+        """What each consumer listens to in advance: the outputs of the hot standbys."""
+        configured = self.dep.configured
+        rep = self.dep.package.runtime.replacement
+        hot = [c.name for c in configured.components if rep.hot(c.name)]
+        return r.standby_subscriptions(configured, hot)
 
     @property
     def hosts(self) -> list[str]:
@@ -576,7 +588,8 @@ class ResolutionEngine(EngineProcess):
         self.unreachable = observed.unreachable
         self.observed.update(observed.states)
         candidates = {s.name for s in standby_specs}
-        plan, running, standby = takeover_plan(observed, expected, target, candidates)
+        hot = {s.name for s in standby_specs if self.dep.package.runtime.replacement.hot(s.name)}
+        plan, running, standby = takeover_plan(observed, expected, target, candidates, hot)
         missing = [
             s
             for s in standby_specs
@@ -790,6 +803,7 @@ class ResolutionEngine(EngineProcess):
             self.dep.package.runtime.replacement,
             default_host=self.host,
             path=(str(self.dep.package.root),),
+            standby_inputs=self.standby_inputs,
         )
         self._state_pub = session.declare_publisher(
             self.keys.state(NAME),

@@ -202,7 +202,7 @@ class ContainerRuntime:
             core = NodeCore(spec, node_cls, transport, logger=self._logger(spec.name),
                             pid=os.getpid())  # fmt: skip
             for name, port in core.ports.items():
-                transport.rebind(name, port.direction, list(port.keys))
+                transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = self.session.declare_queryable(
                 self.keys.node_ctl(spec.name), control_callback(core, self._wake)
             )

@@ -23,7 +23,9 @@ import msgspec
 from rra_agent.models.base import FrozenModel
 from rra_agent.models.system import ParamValue, parse_endpoint
 
-Strategy = Literal["stop-then-start", "start-then-stop", "standby"]
+Strategy = Literal["stop-then-start", "start-then-stop", "standby", "hot-standby"]
+#: Strategies whose components are pre-started at deployment and kept for the way back.
+PRE_STARTED = frozenset({"standby", "hot-standby"})
 
 
 class SetImplementation(FrozenModel, frozen=True):
@@ -107,6 +109,17 @@ class Replacement(FrozenModel, frozen=True):
 
     def strategy_for(self, component: str) -> Strategy:
         return self.components.get(component, self.default)
+
+    def pre_started(self, component: str) -> bool:
+        """Whether ``component`` runs before it is swapped in (``standby``, ``hot-standby``)
+        and stays running after it is swapped out, for the way back."""
+        return self.strategy_for(component) in PRE_STARTED
+
+    def hot(self, component: str) -> bool:
+        """Whether ``component`` is a hot standby: pre-started *active*, computing and
+        publishing on its own keys, which its consumers listen to without delivering until
+        the switch selects them (switch = one request to each consumer)."""
+        return self.strategy_for(component) == "hot-standby"
 
 
 class RuntimeResolutionModel(ResolutionModel, frozen=True):

@@ -899,7 +899,7 @@ def _plan_occurrences(
             out += [Occurrence(t, action, (n,)) for n in nodes]
         if action in ("stop", "deactivate"):
             gone.update(nodes)
-        elif action in ("start", "activate"):
+        elif action in ("start", "activate", "select"):  # select: a hot standby's switch
             came.update(nodes)
     for a in sorted(gone - came):
         for b in sorted(came - gone):

@@ -180,6 +180,7 @@ class VehicleSimulator(Node):
                 self._announce = None
         if q.crashed and not self._crash_reported:
             self._crash_reported = True
+            trace.mark("sim:crash", q.crash_reason)
             self._event("crash", q.crash_reason)
         return n
 

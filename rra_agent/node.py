@@ -244,10 +244,13 @@ class NodeCore:
         clock: Callable[[], float] = time.time,
         logger: Callable[[str], None] | None = None,
         pid: int = 0,
+        monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
         self.spec = spec
         self.transport = transport
         self.clock = clock
+        #: For ages (of held samples): never set back, unlike the wall ``clock``.
+        self.monotonic = monotonic
         self.pid = pid
         self._logger = logger
         self.lock = threading.RLock()
@@ -265,7 +268,7 @@ class NodeCore:
             if name not in self.decl and kind is not None:
                 self.decl[name] = m.ParamDecl(type=kind)
         #: The newest sample of each standby key not selected: (port, key) -> (payload, stamp,
-        #: arrival on ``clock``), delivered when a `Rewire` selects the key.
+        #: arrival on ``monotonic``), delivered when a `Rewire` selects the key.
         self._held: dict[tuple[str, str], tuple[bytes, float | None, float]] = {}
         self.counters = Counters()
         self.published = 0
@@ -328,13 +331,13 @@ class NodeCore:
             if key in self.ports[port].keys:
                 self.deliver(port, payload, stamp)
             else:
-                self._held[(port, key)] = (payload, stamp, self.clock())
+                self._held[(port, key)] = (payload, stamp, self.monotonic())
 
     def _replay(self, port: str, keys: Iterable[str]) -> None:
         """Deliver the held samples of newly selected ``keys`` (if young enough)."""
         for key in keys:
             held = self._held.pop((port, key), None)
-            if held is not None and self.clock() - held[2] <= REPLAY_MAX_AGE:
+            if held is not None and self.monotonic() - held[2] <= REPLAY_MAX_AGE:
                 self.deliver(port, held[0], held[1])
 
     def _drop(self, port: str, why: str) -> None:
@@ -579,7 +582,12 @@ class NodeHarness:
         )
         self.logs: list[str] = []
         self.core = NodeCore(
-            spec, node_cls, self.transport, clock=lambda: self.time, logger=self.logs.append
+            spec,
+            node_cls,
+            self.transport,
+            clock=lambda: self.time,
+            logger=self.logs.append,
+            monotonic=lambda: self.time,
         )
         self.core.start()
 

@@ -43,7 +43,7 @@ def sink(now: list[float]) -> tuple[NodeCore, Bindings]:
                                  standby=[HOT])},
     )  # fmt: skip
     transport = Bindings()
-    core = NodeCore(spec, Sink, transport, clock=lambda: now[0])
+    core = NodeCore(spec, Sink, transport, monotonic=lambda: now[0])
     core.start()
     return core, transport
 

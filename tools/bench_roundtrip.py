@@ -1,40 +1,53 @@
-"""Node SDK round trip vs raw zenoh-python round trip in one run (target ratio <= 1.3).
+"""Node SDK round trip vs raw zenoh-python round trip in one run (goal: ratio <= 1.15).
 
 Layout (loopback, a free port, multicast scouting off, the same `BusConfig` session settings
-for every process): this process is the *pinger* and listens on the hub endpoint; two *echo*
-processes connect to it, both started before measuring and both kept running:
+for every process): this process is the *pinger* and listens on the hub endpoint; three *echo*
+processes connect to it, all started before measuring and all kept running:
 
-- **raw**: a plain zenoh-python process (this script with ``--echo-raw``): a callback
+- **raw**: a plain zenoh-python process (this script with ``--echo raw``): a callback
   subscriber on ``rra/bench/data/raw/in`` that republishes the sample's payload and attachment
   unchanged on ``rra/bench/data/raw/out`` (publisher with ``CongestionControl.BLOCK``,
   express);
+- **floor**: the same plain zenoh-python process (``--echo floor``), doing in one function
+  what any Python node must do per sample and nothing else: read the sender's stamp from the
+  attachment, check the size, decode the msgpack map, encode it again and publish it with a
+  new send-time stamp. No SDK code: the least a node written in Python can cost;
 - **sdk**: a real node process, ``python -m rra_agent.node`` with ``RRA_NODE_SPEC`` /
   ``RRA_BUS_CONFIG``, running `rra_agent.nodes.generic.Relay` (``--impl`` to change) with
   port ``in`` on ``rra/bench/data/sdk/in`` and ``out`` on ``rra/bench/data/sdk/out``. The
   SDK decodes the msgpack map, the node copies it and adds two fields, and the SDK encodes
   it and publishes it with a send-time attachment.
 
-The pinger sends the same ~100-byte msgpack map (with an 8-byte send-time attachment) in both
+The pinger sends the same ~100-byte msgpack map (with an 8-byte send-time attachment) in all
 modes, waits for the echo, checks its ``seq`` and sends the next one: one round trip at a
 time, timed with `time.perf_counter` from just before ``put`` to the reply's arrival in the
 pinger's callback queue. Before measuring it waits for each echo's liveliness token (ready)
-and ``publisher.matching_status.matching``, then warms up. The two modes are measured in
-interleaved blocks (raw, sdk, sdk, raw, ...), each block after a few unmeasured round trips,
-so a change of machine load affects both alike.
+and ``publisher.matching_status.matching``, then warms up. The modes are measured in
+interleaved blocks (raw, floor, sdk, sdk, floor, raw, ...), each block after a few
+unmeasured round trips, so a change of machine load affects all alike.
 
 Run: ``.venv/bin/python tools/bench_roundtrip.py [--n N] [--layouts split,same]``. Prints
-median and p99 (µs) per CPU layout and mode, the ratio of the medians (SDK / raw) per layout
-with PASS if <= 1.3 (exit status 1 if any layout FAILs), and the SDK's absolute overhead.
+median and p99 (µs) per CPU layout and mode; per layout the medians of SDK, raw and floor,
+the ratio SDK / raw with PASS if <= 1.15 (exit status 1 if any layout FAILs), and the SDK's
+overhead in µs split into the floor's share and the rest (the SDK's and the node's own
+work). Last, the same three callbacks timed in this process with hot caches (no bus: a
+sample object made here, a publisher nobody listens to), per sample.
 
 CPU placement dominates the figures on a 2-core machine, and left to the scheduler each echo
-process lands where it happens to (so the two modes need not even share a layout: a single
+process lands where it happens to (so the modes need not even share a layout: a single
 unpinned run gave SDK/raw = 0.78). So the same processes are measured in fixed layouts, one
 after the other, by setting the CPU affinity of every thread of every process:
 
-- ``split``: the pinger on one CPU, both echoes on another (cross-CPU wake-ups: raw ~105 µs);
-- ``same``: every process on one CPU (raw ~65 µs; the SDK's extra Python work shows fully,
-  the worst case for the ratio);
+- ``split``: the pinger on one CPU, the echoes on another (cross-CPU wake-ups);
+- ``same``: every process on one CPU (the SDK's extra Python work shows fully, the worst
+  case for the ratio);
 - ``none``: all CPUs, the scheduler decides (as deployed; varies from run to run).
+
+Reading ``same``: on one CPU a round trip costs the sum of the CPU time of every thread it
+wakes (pinger and echo), and a few µs of Python work in the echo's callback cost several
+times as much there: the callback thread, having run longer than the raw echo's, is
+preempted by Zenoh's sending thread at ``put`` instead of finishing first, and the extra
+context switches land on both processes. The in-process figures give the work itself.
 """
 
 from __future__ import annotations
@@ -47,6 +60,7 @@ import itertools
 import os
 import queue
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
@@ -67,16 +81,19 @@ from _benchutil import Stats, print_table  # noqa: E402
 from rra_agent.bus import messages as m  # noqa: E402
 from rra_agent.bus.config import ENV_VAR as BUS_ENV  # noqa: E402
 from rra_agent.bus.config import BusConfig, free_port  # noqa: E402
+from rra_agent.bus.counters import MAX_PAYLOAD  # noqa: E402
 from rra_agent.bus.keys import Keys  # noqa: E402
 from rra_agent.node import SPEC_ENV  # noqa: E402
 
-TARGET = 1.3
+TARGET = 1.15
 SYSTEM = "bench"
 HOST = "bench"
 KEYS = Keys(SYSTEM)
 RAW_IN, RAW_OUT = KEYS.data("raw/in"), KEYS.data("raw/out")
+FLOOR_IN, FLOOR_OUT = KEYS.data("floor/in"), KEYS.data("floor/out")
 SDK_IN, SDK_OUT = KEYS.data("sdk/in"), KEYS.data("sdk/out")
-RAW_NAME, SDK_NAME = "raw-echo", "sdk-echo"
+RAW_NAME, FLOOR_NAME, SDK_NAME = "raw-echo", "floor-echo", "sdk-echo"
+RAW, FLOOR, SDK = "raw zenoh-python", "floor: zenoh-python + msgpack", "Node SDK"
 DEFAULT_IMPL = "rra_agent.nodes.generic.Relay"
 
 _ENC = msgspec.msgpack.Encoder()
@@ -97,9 +114,48 @@ def make_payload(seq: int) -> bytes:
     )
 
 
-# ---- the raw echo process -----------------------------------------------------------------
-def run_raw_echo(key_in: str, key_out: str, name: str) -> int:
-    """Plain zenoh-python: republish every sample's payload and attachment, until signalled."""
+# ---- the plain zenoh-python echoes -------------------------------------------------------
+EchoFactory = Callable[[zenoh.Publisher], Callable[[zenoh.Sample], None]]
+
+
+def raw_echo(pub: zenoh.Publisher) -> Callable[[zenoh.Sample], None]:
+    """Republish every sample's payload and attachment unchanged."""
+
+    def echo(sample: zenoh.Sample) -> None:
+        pub.put(sample.payload, attachment=sample.attachment)
+
+    return echo
+
+
+def floor_echo(pub: zenoh.Publisher) -> Callable[[zenoh.Sample], None]:
+    """What any Python node must do per sample, in one function: the sender's stamp, the size
+    check, decode, encode, a new send-time stamp (as the SDK does, without its code)."""
+    stamp = struct.Struct("<d")
+    pack, unpack, now = stamp.pack, stamp.unpack, time.time
+    dec, enc, limit = msgspec.msgpack.Decoder(), msgspec.msgpack.Encoder(), MAX_PAYLOAD["data"]
+    last: list[float | None] = [None]  # the sender's stamp, kept as a node would see it
+
+    def echo(sample: zenoh.Sample) -> None:
+        att = sample.attachment
+        last[0] = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
+        payload = sample.payload.to_bytes()
+        if len(payload) > limit:
+            return
+        try:
+            data = dec.decode(payload)
+        except msgspec.DecodeError:
+            return
+        if isinstance(data, dict):
+            pub.put(enc.encode(data), attachment=pack(now()))
+
+    return echo
+
+
+ECHOES: dict[str, EchoFactory] = {"raw": raw_echo, "floor": floor_echo}
+
+
+def run_echo(kind: str, key_in: str, key_out: str, name: str) -> int:
+    """A plain zenoh-python echo process (``kind``: raw or floor), until signalled."""
     stop = threading.Event()
 
     def on_signal(_signum: int, _frame: Any) -> None:
@@ -112,11 +168,7 @@ def run_raw_echo(key_in: str, key_out: str, name: str) -> int:
         pub = session.declare_publisher(
             key_out, congestion_control=zenoh.CongestionControl.BLOCK, express=True
         )
-
-        def echo(sample: zenoh.Sample) -> None:
-            pub.put(sample.payload, attachment=sample.attachment)
-
-        sub = session.declare_subscriber(key_in, echo)
+        sub = session.declare_subscriber(key_in, ECHOES[kind](pub))
         token = session.liveliness().declare_token(KEYS.alive(HOST, name))
         while not stop.wait(1.0):  # a timed wait: the signal handler runs between waits
             pass
@@ -310,15 +362,75 @@ def node_spec(impl: str) -> m.NodeSpec:
 
 def start_echoes(impl: str, env: dict[str, str], log_dir: Path) -> list[Child]:
     py = sys.executable
-    raw_args = [py, str(Path(__file__).resolve()), "--echo-raw", RAW_IN, RAW_OUT, RAW_NAME]
+    me = str(Path(__file__).resolve())
     spec = {SPEC_ENV: msgspec.json.encode(node_spec(impl)).decode()}
     return [
-        spawn(RAW_NAME, raw_args, env, log_dir),
+        spawn(RAW_NAME, [py, me, "--echo", "raw", RAW_IN, RAW_OUT, RAW_NAME], env, log_dir),
+        spawn(
+            FLOOR_NAME, [py, me, "--echo", "floor", FLOOR_IN, FLOOR_OUT, FLOOR_NAME], env, log_dir
+        ),
         spawn(SDK_NAME, [py, "-m", "rra_agent.node"], {**env, **spec}, log_dir),
     ]
 
 
-def report(args: argparse.Namespace, results: dict[str, dict[str, Stats]], cpus: list[int]) -> int:
+# ---- the same callbacks in this process -----------------------------------------------------
+@dataclass
+class _Sample:
+    """What the callbacks read of a `zenoh.Sample`."""
+
+    payload: zenoh.ZBytes
+    attachment: zenoh.ZBytes
+
+
+def per_sample_us(fn: Callable[[Any], None], sample: Any, n: int = 20000, reps: int = 15) -> float:
+    """The best of ``reps`` mean durations of ``fn(sample)`` over ``n`` calls, µs."""
+    for _ in range(n // 10):
+        fn(sample)
+    best = float("inf")
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            fn(sample)
+        best = min(best, (time.perf_counter() - t0) / n)
+    return best * 1e6
+
+
+def in_process(session: zenoh.Session, impl: str) -> dict[str, float]:
+    """Hot-cache cost per sample of each mode's callback (the SDK's: `ZenohTransport`'s, with
+    a `NodeCore` running ``impl``), each publishing on a key nobody listens to."""
+    from rra_agent.bus.runtime import ZenohTransport
+    from rra_agent.node import NodeCore, load_node_class
+
+    sample = _Sample(zenoh.ZBytes(make_payload(1)), zenoh.ZBytes(m.pack_stamp(time.time())))
+    key = KEYS.data("inproc/out")
+    pub = session.declare_publisher(
+        key, congestion_control=zenoh.CongestionControl.BLOCK, express=True
+    )
+    transport = ZenohTransport(session)
+    spec = node_spec(impl)
+    spec.ports["out"] = m.PortSpec(direction="publish", type="Bench", keys=[key])
+    core = NodeCore(spec, load_node_class(impl), transport)
+    transport.rebind("out", "publish", [key])
+    core.start()
+    transport.core = core
+    try:
+        return {
+            RAW: per_sample_us(raw_echo(pub), sample),
+            FLOOR: per_sample_us(floor_echo(pub), sample),
+            SDK: per_sample_us(transport._on_sample("in"), sample),
+        }
+    finally:
+        core.stop()
+        transport.close()
+        pub.undeclare()
+
+
+def report(
+    args: argparse.Namespace,
+    results: dict[str, dict[str, Stats]],
+    cpus: list[int],
+    hot: dict[str, float],
+) -> int:
     print(
         f"round trip of a {len(make_payload(0))}-byte msgpack map + 8-byte attachment, "
         f"pinger <-> echo process on loopback; n={args.n} per mode and layout, interleaved in "
@@ -335,15 +447,21 @@ def report(args: argparse.Namespace, results: dict[str, dict[str, Stats]], cpus:
     print_table(["CPU layout", "mode", "median µs", "p99 µs", "min µs", "mean µs", "max µs"], rows)
     failed = False
     for layout, stats in results.items():
-        raw, sdk = stats["raw zenoh-python"], stats["Node SDK"]
-        ratio = sdk.median_us / raw.median_us
+        raw, floor, sdk = stats[RAW].median_us, stats[FLOOR].median_us, stats[SDK].median_us
+        ratio, p99s = sdk / raw, stats[SDK].p99_us / stats[RAW].p99_us
         verdict = "PASS" if ratio <= TARGET else "FAIL"
         failed |= verdict == "FAIL"
         print(
-            f"{layout:>5}: ratio of medians SDK / raw {ratio:.3f} (target <= {TARGET}): "
-            f"{verdict}; SDK overhead {sdk.median_us - raw.median_us:.1f} µs per round trip, "
-            f"ratio of p99s {sdk.p99_us / raw.p99_us:.3f}"
+            f"{layout:>5}: SDK {sdk:.1f} µs, raw {raw:.1f} µs, floor {floor:.1f} µs (medians); "
+            f"SDK / raw {ratio:.3f} (goal <= {TARGET}): {verdict}; SDK overhead "
+            f"{sdk - raw:.1f} µs per round trip = floor {floor - raw:.1f} µs (floor / raw "
+            f"{floor / raw:.3f}) + SDK and node code {sdk - floor:.1f} µs (SDK / floor "
+            f"{sdk / floor:.3f}); ratio of p99s SDK / raw {p99s:.3f}"
         )
+    print(
+        "in this process, hot caches, per sample: "
+        + ", ".join(f"{mode} {us:.2f} µs" for mode, us in hot.items())
+    )
     return 1 if failed else 0
 
 
@@ -371,8 +489,9 @@ def bench(args: argparse.Namespace) -> int:
         alive_sub = session.liveliness().declare_subscriber(KEYS.alive_all, on_alive, history=True)
         channels = []
         for name, key_in, key_out in (
-            ("raw zenoh-python", RAW_IN, RAW_OUT),
-            ("Node SDK", SDK_IN, SDK_OUT),
+            (RAW, RAW_IN, RAW_OUT),
+            (FLOOR, FLOOR_IN, FLOOR_OUT),
+            (SDK, SDK_IN, SDK_OUT),
         ):
             pub = session.declare_publisher(
                 key_in, congestion_control=zenoh.CongestionControl.BLOCK, express=True
@@ -406,7 +525,8 @@ def bench(args: argparse.Namespace) -> int:
             )
             results[layout] = {name: Stats.of(s) for name, s in samples.items()}
         alive_sub.undeclare()
-        return report(args, results, cpus)
+        pin(os.getpid(), set(cpus))
+        return report(args, results, cpus, in_process(session, args.impl))
     finally:
         problems = stop_children(children)
         session.close()
@@ -437,11 +557,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep-logs", action="store_true", help="keep the echoes' logs")
     parser.add_argument("--impl", default=DEFAULT_IMPL, help=f"SDK echo node ({DEFAULT_IMPL})")
     parser.add_argument(
-        "--echo-raw", nargs=3, metavar=("IN", "OUT", "NAME"), help=argparse.SUPPRESS
+        "--echo", nargs=4, metavar=("KIND", "IN", "OUT", "NAME"), help=argparse.SUPPRESS
     )
     args = parser.parse_args(argv)
-    if args.echo_raw:
-        return run_raw_echo(*args.echo_raw)
+    if args.echo:
+        return run_echo(*args.echo)
     if args.n < 1 or args.block < 1:
         parser.error("--n and --block must be positive")
     return bench(args)

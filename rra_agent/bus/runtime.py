@@ -1,9 +1,16 @@
 """Run a `NodeCore` on Zenoh: ports as publishers/subscribers, a control queryable, a token.
 
-Threading: Zenoh delivers samples and queries on its own thread; `NodeCore` serialises them
-with the node's lock, so data and control are handled inline (no hand-off latency). The main
-thread only sleeps in ``select`` until the next periodic ``step`` or a wake-up byte on a
-self-pipe, written by SIGINT/SIGTERM (``signal.set_wakeup_fd``) and by a Shutdown request.
+Threading: zenoh-python hands the samples and queries of each subscriber and queryable from
+Zenoh's network threads to a Python thread of that callback's own (its default, *indirect*
+callbacks); there `NodeCore` serialises them with the node's lock, so data and control are
+handled inline (no further hand-off). A direct callback (``indirect=False``) would save that
+hop, ~14 µs of a round trip on one CPU, but would run node code on the network thread that
+also reads the link's keep-alives, and pyo3 makes and drops a Python thread state per call
+there, which costs more than the hop (issue 12: the raw echo of ``tools/bench_roundtrip.py``
+run in a node process both ways).
+
+The main thread only sleeps in ``select`` until the next periodic ``step`` or a wake-up byte on
+a self-pipe, written by SIGINT/SIGTERM (``signal.set_wakeup_fd``) and by a Shutdown request.
 
 Ready handshake: the liveliness token ``rra/<system>/alive/<host>/<node>`` is declared last,
 after every port is bound and ``on_start`` has run; then the ready flag of the heartbeat is

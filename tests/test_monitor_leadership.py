@@ -52,3 +52,34 @@ def test_a_measurement_computed_before_leading_is_published_on_taking_the_lead(
         ("Speed", 0.5),
     }
     assert [s.stamp for s in sent] == [proc.latest[s.name].stamp for s in sent]  # as computed
+
+
+def test_an_unchanged_measurement_is_sent_again_only_to_stay_fresh(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Changes go out at once; an unchanged value goes out again only after a quarter of
+    its ``max_age_ms`` (or every second without one), so the rules never see it stale."""
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setitem(sys.modules, "rover_functions", None)
+    monkeypatch.delitem(sys.modules, "rover_functions")
+    proc = MonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
+    proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
+    sent: list[m.Measurement] = []
+    proc.publishers = {s.m.name: Publisher(sent) for s in proc.core.specs}  # type: ignore[misc]
+    now = [1000.0]
+    monkeypatch.setattr("rra_agent.engines.monitor.time.time", lambda: now[0])
+
+    def fix(seq: int, satellites: int) -> list[tuple[str, object]]:
+        sent.clear()
+        sample = {"seq": seq, "satellites": satellites, "indoor": False, "speed": 0.5}
+        proc._pending["gnss_receiver.fix"] = (msgspec.msgpack.encode(sample), now[0])
+        proc._process()
+        return [(s.name, s.value) for s in sent]
+
+    assert len(fix(1, 7)) == 3  # first values
+    now[0] += 0.01
+    assert fix(2, 7) == []  # nothing changed, all fresh
+    now[0] += 0.01
+    assert fix(3, 8) == [("Satellites", 8)]  # a change, at once
+    now[0] += max(proc.refresh.values())
+    assert len(fix(4, 8)) == 3  # unchanged, but due again to stay fresh

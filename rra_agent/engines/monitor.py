@@ -17,6 +17,12 @@ that host's agent (gone when its link is lost, within the bus lease; back when i
 each transition is published as a measurement and as an adaptation event
 (``host_unreachable`` / ``host_reachable``).
 
+Publishing: a measurement is published when its value changes, and unchanged at most every
+quarter of its ``max_age_ms`` (every second without one), so that the rules never see it
+stale while its sources live. Sending every computed value (400 Hz of an unchanged
+WorkingMotors) made every Adaptation Engine replica evaluate its rules 400 times a second
+on a 2-core machine, which slowed every other process on the path of an adaptation.
+
 Replicas: every replica computes every measurement (a hot standby); only the leader of the
 ``monitor`` role publishes. Every replica answers a query on ``rra/<system>/ctx/*`` with the
 newest value of each measurement, so a restarted Adaptation Engine resumes from them.
@@ -47,6 +53,8 @@ from rra_agent.node import decode_data
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
+#: Seconds between publications of an unchanged measurement that has no ``max_age_ms``.
+REFRESH = 1.0
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 
@@ -106,6 +114,12 @@ class MonitorProcess(EngineProcess):
         self.publishers: dict[str, zenoh.Publisher] = {}
         #: The newest measurement of each name (answered to a restarted Adaptation Engine).
         self.latest: dict[str, m.Measurement] = {}
+        #: The last one published of each name, and how often one unchanged is sent again.
+        self.sent: dict[str, m.Measurement] = {}
+        self.refresh = {
+            meas.name: REFRESH if meas.max_age_ms is None else meas.max_age_ms / 4000.0
+            for meas in dep.package.measurements.measurements
+        }
         #: Samples waiting to be processed: the newest per source (older ones coalesced).
         self._pending: dict[str, tuple[bytes, float]] = {}
         self._scheduled = False
@@ -170,10 +184,17 @@ class MonitorProcess(EngineProcess):
             self.latest[msg.name] = msg
         if not self.leading:
             return  # a hot standby computes everything, publishes nothing
-        self._publish(msg)
+        last = self.sent.get(msg.name)
+        if (
+            last is None
+            or last.value != msg.value
+            or msg.stamp - last.stamp >= self.refresh.get(msg.name, REFRESH)
+        ):
+            self._publish(msg)
 
     def _publish(self, msg: m.Measurement) -> None:
         trace.mark("monitor:measurement", msg.name)
+        self.sent[msg.name] = msg
         self.publishers[msg.name].put(_CTX.encode(msg))
         self.published += 1
         if self.viz:

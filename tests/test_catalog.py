@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import msgspec
@@ -62,3 +63,16 @@ def test_everything_but_the_choice_comes_from_the_model(catalog):
 def test_refusals_say_which_rule(catalog, spec, why):
     with pytest.raises(Refused, match=why):
         catalog.admit(spec)
+
+
+def test_the_builtins_run_by_this_interpreter_are_forked(catalog):
+    """The fork server forks the host agent's own ``python -m`` processes of this
+    interpreter (``rra up``'s engines); another interpreter's command is exec'd."""
+    assert catalog.forked == []  # ``python3 -m x`` is not this interpreter
+    mine = [sys.executable, "-m", "rra_agent.engines.monitor", "--package", str(PACKAGE)]
+    c = Catalog(deploy(PACKAGE).configured, "h1", package_root=PACKAGE)
+    c.add_builtins(
+        m.NodeSpec(system="hosttest", name=n, host="h1", implementation=Command(command=mine))
+        for n in ("monitor-a", "monitor-b")
+    )
+    assert c.forked == [mine]

@@ -1,4 +1,5 @@
-"""A normal shutdown of ``rra up`` logs no failure and leaves no process behind.
+"""A normal shutdown of ``rra up`` logs no failure and leaves no process behind (also after an
+engine, a fork of the fork server, was killed and started again).
 
 A Ctrl-C in a terminal sends SIGINT to the whole foreground process group: ``rra up`` and,
 unless they have a group of their own, every process it started, all at once. The host
@@ -151,6 +152,41 @@ def test_ctrl_c_of_a_running_system(tmp_path: Path) -> None:
     events = followed.read_text()
     assert "Traceback" not in events
     assert events.splitlines()[-1] == "system 'relay_system' stopped: no host agent is left"
+
+
+def test_the_engines_are_forks_of_the_fork_server_and_restart_as_such(tmp_path: Path) -> None:
+    """The engines share the fork server's interpreter (`rra_agent.host.forkserver`): each is
+    a fork of it (its command line is the fork server's), a child of ``rra up``, writing its
+    own log. Killed with SIGKILL, an engine is started again the same way; Ctrl-C then stops
+    everything cleanly."""
+    up = Up(tmp_path)
+    try:
+        wait_until(lambda: "Ctrl-C to stop" in up.printed(), 60, "rra up listening")
+
+        def engine(name: str, old: int = 0) -> int | None:
+            pids = re.findall(rf"\b{name}\s+RUNNING pid (\d+)", up.printed())
+            return int(pids[-1]) if pids and int(pids[-1]) != old else None
+
+        names = [f"{e}-{r}" for e in ("monitor", "adaptation", "resolution") for r in "ab"]
+        pids = {n: wait_until(lambda n=n: engine(n), 60, f"{n} running") for n in names}
+        for name, pid in pids.items():
+            check_forked(up, name, pid)
+        os.kill(pids["monitor-a"], signal.SIGKILL)
+        again = wait_until(lambda: engine("monitor-a", pids["monitor-a"]), 60, "its restart")
+        check_forked(up, "monitor-a", again)
+        everything = up.pids() | {again}
+        assert up.ctrl_c() == 0, up.printed()
+    finally:
+        up.kill()
+    check_clean(up, everything)
+
+
+def check_forked(up: Up, name: str, pid: int) -> None:
+    cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    assert b"rra_agent.host.forkserver" in cmd, cmd
+    with open(f"/proc/{pid}/stat") as f:
+        assert int(f.read().rsplit(")", 1)[1].split()[1]) == up.proc.pid
+    assert os.readlink(f"/proc/{pid}/fd/1") == str(up.run_dir / "logs" / f"{name}.log")
 
 
 # ---- the supervisor: how a starting process is stopped ----------------------------------------

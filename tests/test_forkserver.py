@@ -1,6 +1,8 @@
 """The fork server and the host's process table: nodes forked from a pre-imported
 interpreter become children of the host agent's process (a subreaper), which reaps them; the
-fork server's death leaves them running; every node beats into its heartbeat slot."""
+fork server's death leaves them running; every node beats into its heartbeat slot. The host
+agent's own ``python -m MODULE`` processes (the engines) run forked, after MODULE's
+``warm_up``, as ``python -m`` would run them."""
 
 from __future__ import annotations
 
@@ -213,6 +215,72 @@ def test_spares_end_with_their_fork_server(tmp_path, monkeypatch):
         os.kill(h.zygote.pid, signal.SIGKILL)
         wait_until(lambda: not (set(spares) & _our_children()), 10, "the spares' exit")
         assert pid_alive(first)  # the node it started goes on
+    finally:
+        h.kill_all()
+        hub.close()
+
+
+MAIN_MODULE = """
+import atexit, os, sys
+
+WARMED = []
+
+
+def warm_up(args):
+    WARMED.append((os.getpid(), args))
+
+
+def main(args):
+    atexit.register(lambda: print("atexit ran", flush=True))
+    mine = [pid for pid, warmed in WARMED if warmed == args]
+    print(f"warmed {mine}, main in {os.getpid()} with {args}, argv {sys.argv[1:]}", flush=True)
+    if args[0] == "exit":
+        sys.exit(int(args[1]))
+    if args[0] == "raise":
+        raise RuntimeError("main failed")
+    return int(args[1])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_the_host_agents_python_modules_run_forked_after_their_warm_up(tmp_path, monkeypatch):
+    """A command the host agent names (``forked``) is not exec'd: the fork server imported
+    its module and ran ``warm_up(ARGS)`` before forking it, and the fork calls
+    ``main(ARGS)`` with a new interpreter's exit status (returned, ``sys.exit``, an
+    uncaught exception) and ``atexit`` hooks. Any other ``python -m`` command is exec'd."""
+    (tmp_path / "mainmod.py").write_text(MAIN_MODULE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.host_router(hub=True))
+    logs = tmp_path / "logs"
+    commands = {
+        name: [sys.executable, "-m", "mainmod", *args]
+        for name, args in [("ret", ["ret", "3"]), ("exit", ["exit", "4"]),
+                           ("raise", ["raise", "0"]), ("other", ["ret", "5"])]
+    }  # fmt: skip
+    forked = [commands[n] for n in ("ret", "exit", "raise")]
+    h = LocalHost("h", bus, logs, forked=forked)
+    try:
+        pids = {name: h.spawn(spec(name, Command(command=cmd))) for name, cmd in commands.items()}
+        assert h.zygote is not None
+        zygote = h.zygote.pid
+        seen: dict[int, int] = {}
+        wait_until(lambda: seen.update(h.reap()) or set(pids.values()) <= set(seen), 10,
+                   "every exit")  # fmt: skip
+        statuses = {name: seen[pid] for name, pid in pids.items()}
+        assert statuses == {"ret": 3, "exit": 4, "raise": 1, "other": 5}
+        log = {name: (logs / f"{name}.log").read_text() for name in commands}
+        for name in ("ret", "exit", "raise"):
+            args = commands[name][3:]
+            assert (
+                f"warmed [{zygote}], main in {pids[name]} with {args}, argv {args}" in (log[name])
+            ), log[name]
+            assert "atexit ran" in log[name]
+        assert "RuntimeError: main failed" in log["raise"] and "Traceback" in log["raise"]
+        assert "warmed []" in log["other"]  # exec'd: a new interpreter, no warm-up
     finally:
         h.kill_all()
         hub.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import sys
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import msgspec
 import pytest
 
 from rra_agent.bus import messages as m
-from rra_agent.deployment import deploy
+from rra_agent.deployment import _prepared, deploy, prepare
 from rra_agent.host.catalog import Catalog, Refused
 from rra_agent.models.system import Command, Supervision
 
@@ -76,3 +77,21 @@ def test_the_builtins_run_by_this_interpreter_are_forked(catalog):
         for n in ("monitor-a", "monitor-b")
     )
     assert c.forked == [mine]
+
+
+def test_a_prepared_deployment_is_shared_until_a_file_of_the_package_changes(tmp_path):
+    """`prepare` keeps what it deployed: `deploy` of the same package and selection returns
+    that very object (what the engines forked by the fork server share) until a file of
+    the package changes."""
+    pkg = tmp_path / "pkg"
+    shutil.copytree(PACKAGE, pkg)
+    prepared = prepare(pkg)
+    try:
+        assert deploy(pkg) is prepared
+        assert deploy(pkg, ["Base"]) is not prepared  # another selection: not that one
+        system = pkg / "system.yaml"
+        system.write_text(system.read_text() + "\n# changed\n")
+        fresh = deploy(pkg)
+        assert fresh is not prepared and fresh.configured == prepared.configured
+    finally:
+        _prepared.clear()

@@ -15,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import msgspec
@@ -79,9 +80,10 @@ class Up:
             self.proc.wait()
 
 
-def check_clean(up: Up, pids: set[int]) -> None:
+def check_clean(up: Up, pids: set[int], since: float | None = None) -> None:
     """No failure in anything the shutdown wrote to the run folder or printed (a machine
-    loaded by other work may have restarted a slow engine before); no process left."""
+    loaded by other work may have restarted a slow engine before), nor among the events
+    from ``since`` (default: the first STOPPING); no process left."""
     files = [p for p in up.run_dir.rglob("*") if p.is_file()]
     assert files
     for path in files:
@@ -94,7 +96,7 @@ def check_clean(up: Up, pids: set[int]) -> None:
     assert not FAILURE.search(printed), printed
     log = up.run_dir / "events.jsonl"  # none if stopped before an engine led
     states = [e for e in read_events(log) if isinstance(e, m.NodeState)] if log.exists() else []
-    stop = min((e.stamp for e in states if e.state == "STOPPING"), default=0.0)
+    stop = since or min((e.stamp for e in states if e.state == "STOPPING"), default=0.0)
     for ev in states:
         assert ev.stamp < stop or ev.state not in ("BACKOFF", "FATAL", "EXITED"), ev
     wait_until(lambda: not [p for p in pids if pid_alive(p)], 10, "every process gone")
@@ -175,10 +177,11 @@ def test_the_engines_are_forks_of_the_fork_server_and_restart_as_such(tmp_path: 
         again = wait_until(lambda: engine("monitor-a", pids["monitor-a"]), 60, "its restart")
         check_forked(up, "monitor-a", again)
         everything = up.pids() | {again}
+        stopped = time.time()
         assert up.ctrl_c() == 0, up.printed()
     finally:
         up.kill()
-    check_clean(up, everything)
+    check_clean(up, everything, since=stopped)
 
 
 def check_forked(up: Up, name: str, pid: int) -> None:

@@ -79,12 +79,7 @@ def descendants(root_pid: int) -> list[int]:
     children: dict[int, list[int]] = defaultdict(list)
     for entry in os.listdir("/proc"):
         if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children[ppid].append(int(entry))
+            children[_parent(int(entry))].append(int(entry))
     out, todo = [], [root_pid]
     while todo:
         pid = todo.pop(0)
@@ -101,13 +96,15 @@ def role(pid: int, root_pid: int) -> str:
             return Path(out).stem
     if pid == root_pid:
         return "rra up (host agent, router)"
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            argv = f.read().decode(errors="replace").split("\0")
-    except OSError:
+    argv = _cmdline(pid)
+    if not argv:
         return "?"
     if "rra_agent.host.forkserver" in argv:
-        return "fork server (zygote)" if "/dev/null" not in _stdout(pid) else "spare (idle fork)"
+        if "/dev/null" in _stdout(pid):
+            return "spare (idle fork)"
+        if "rra_agent.host.forkserver" in _cmdline(_parent(pid)):
+            return "fork server branch (engines)"
+        return "fork server (zygote)"
     return " ".join(argv[:3])
 
 
@@ -116,6 +113,22 @@ def _stdout(pid: int) -> str:
         return os.readlink(f"/proc/{pid}/fd/1")
     except OSError:
         return ""
+
+
+def _cmdline(pid: int) -> list[str]:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
+def _parent(pid: int) -> int:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return 0
 
 
 def mapping_kind(name: str) -> str:

@@ -162,7 +162,6 @@ def serve(host_pid: int, preload: Iterable[str] = (), mains: Iterable[list[str]]
     _preload((*PRELOAD, *preload))
     with contextlib.suppress(Exception):
         _warm_sdk()
-    _warm_mains(mains)
     # What the zygote made is never freed: keep the garbage collector of every fork from
     # visiting (and so copying) its pages.
     gc.freeze()
@@ -170,28 +169,114 @@ def serve(host_pid: int, preload: Iterable[str] = (), mains: Iterable[list[str]]
     stdin = sys.stdin.buffer.fileno()
     out = sys.stdout.buffer.fileno()
     spares: list[tuple[int, int]] = []
+    mains = list(mains)
+    branch = _Branch(mains, out, host_pid, spares) if mains else None
+    try:
+        return _serve_requests(stdin, out, host_pid, SPARES, spares, branch)
+    finally:
+        if branch is not None:
+            branch.close()
+
+
+def _serve_requests(
+    requests: int,
+    out: int,
+    host_pid: int,
+    wanted: int,
+    spares: list[tuple[int, int]],
+    branch: _Branch | None,
+) -> int:
+    """Answer the requests read from ``requests`` until its end of file, keeping ``wanted``
+    spares; a request with ``main`` goes to ``branch`` if there is one."""
+    held = [branch.pipe] if branch is not None else []
     buffer = b""
     while True:
         with contextlib.suppress(OSError):
-            while len(spares) < SPARES:
-                spares.append(_spare([stdin, out], host_pid, spares))
-        select.select([stdin], [], [])
-        chunk = os.read(stdin, 65536)
+            while len(spares) < wanted:
+                spares.append(_spare([requests, out], host_pid, spares, held))
+        select.select([requests], [], [])
+        chunk = os.read(requests, 65536)
         if not chunk:
             return 0
         buffer += chunk
         *lines, buffer = buffer.split(b"\n")
         for line in lines:
-            if line.strip():
-                _start(json.loads(line), line, spares, out, [stdin, out], host_pid)
+            if not line.strip():
+                continue
+            request = json.loads(line)
+            if branch is not None and request.get("main"):
+                branch.forward(line)
+                held[:] = [branch.pipe]
+            else:
+                _start(request, line, spares, out, [requests, out], host_pid, held)
 
 
-def _start(request: dict[str, Any], line: bytes, spares, out: int, fds, host_pid: int) -> None:
+class _Branch:
+    """The zygote's branch for the ``python -m`` commands it runs (``rra up``'s engines): a
+    fork of the zygote that imports their modules, calls their ``warm_up`` and forks them on
+    request (without spares: they start once and rarely restart), answering the host agent
+    on the zygote's stdout itself. The nodes, forked from the zygote, so do not inherit what
+    only the engines need: a node's private memory grows with every page of its zygote it
+    writes to, and a bigger zygote heap offers it more pages to write to (measured with
+    ``tools/bench_memory.py``: 4.3 MiB per node, 5.8 with the engines' modules and
+    deployment in the zygote). The branch dies with the zygote (parent-death signal); one
+    that died is forked again at the next request."""
+
+    def __init__(
+        self, mains: list[list[str]], out: int, host_pid: int, spares: list[tuple[int, int]]
+    ) -> None:
+        self.mains, self.out, self.host_pid, self.spares = mains, out, host_pid, spares
+        self.pid, self.pipe = self._fork()
+
+    def _fork(self) -> tuple[int, int]:
+        """(the branch's pid, the write end of its request pipe)."""
+        zygote = os.getpid()
+        requests, pipe = os.pipe()
+        pid = os.fork()
+        if pid == 0:
+            code = 1
+            try:
+                os.close(pipe)
+                for _, spare in self.spares:  # a spare must see its end of file
+                    os.close(spare)
+                _detach([sys.stdin.fileno()])  # the zygote's requests are not the branch's
+                die_with_parent()
+                if os.getppid() != zygote:
+                    os._exit(0)
+                _warm_mains(self.mains)
+                gc.freeze()
+                code = _serve_requests(requests, self.out, self.host_pid, 0, [], None)
+            finally:
+                os._exit(code)
+        os.close(requests)
+        return pid, pipe
+
+    def forward(self, line: bytes) -> None:
+        """Pass a request on (to a new branch if this one died)."""
+        try:
+            os.write(self.pipe, line + b"\n")
+        except OSError:
+            self.close()
+            with contextlib.suppress(OSError):
+                os.kill(self.pid, signal.SIGKILL)
+                os.waitpid(self.pid, 0)
+            self.pid, self.pipe = self._fork()
+            os.write(self.pipe, line + b"\n")
+
+    def close(self) -> None:
+        """No more requests: the branch sees the end of its pipe and exits."""
+        with contextlib.suppress(OSError):
+            os.close(self.pipe)
+
+
+def _start(
+    request: dict[str, Any], line: bytes, spares, out: int, fds, host_pid: int, held=()
+) -> None:
     """Hand the request to a spare (a node process already: adopted, warm, waiting); with
     none left (or all dead), fork one for it first. Either way it is one kind of process."""
     while True:
         if not spares:
-            spares.append(_spare(fds, host_pid, spares))
+            spares.append(_spare(fds, host_pid, spares, held))
         pid, pipe = spares.pop(0)
         try:
             os.write(pipe, line + b"\n")
@@ -203,17 +288,20 @@ def _start(request: dict[str, Any], line: bytes, spares, out: int, fds, host_pid
         return
 
 
-def _spare(fds: list[int], host_pid: int, spares: list[tuple[int, int]]) -> tuple[int, int]:
+def _spare(
+    fds: list[int], host_pid: int, spares: list[tuple[int, int]], held: Iterable[int] = ()
+) -> tuple[int, int]:
     """Fork a spare node process (through an intermediate, so the host agent adopts it) that
     waits for its request on a pipe; (its pid, the pipe's write end). It closes the other
-    spares' pipes: a spare must see the end of file when the zygote goes."""
+    spares' pipes (a spare must see the end of file when the zygote goes) and ``held``
+    (the branch's request pipe)."""
     req_r, req_w = os.pipe()
     pid_r, pid_w = os.pipe()
     pid = os.fork()
     if pid == 0:
         status = 0
         try:
-            for fd in (req_w, pid_r, *(w for _, w in spares)):
+            for fd in (req_w, pid_r, *(w for _, w in spares), *held):
                 os.close(fd)
             node = os.fork()
             if node == 0:

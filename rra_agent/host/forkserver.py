@@ -22,20 +22,23 @@ it forks the next spare. A spare sees the end of file when the zygote goes, and 
 External-command nodes are started the same way (the node process ``exec``s the command),
 so every node has one parent, one way to be reaped and the same parent-death signal. A
 command ``python -m MODULE ARGS`` of this interpreter that the host agent names (``rra up``'s
-engines) is not ``exec``ed: the zygote imports MODULE, calls ``MODULE.warm_up(ARGS)`` if
-there is one (the engines load and resolve the system package there, once), and the forked
+engines) is not ``exec``ed: the zygote's *branch* (`_Branch`, a fork of the zygote made at
+its start) imports MODULE, calls ``MODULE.warm_up(ARGS)`` if there is one (the engines load
+and resolve the system package there, once) and forks it on request like a node; the forked
 process calls ``MODULE.main(ARGS)`` as ``python -m`` would have (its exit status,
 ``SystemExit`` and ``atexit`` hooks included). So it shares the zygote's imported modules
 and what ``warm_up`` made instead of making them again in a new interpreter (measured with
 ``tools/bench_memory.py``: 23 MiB private memory per engine exec'd, 18.5 MiB forked,
-8.5 MiB forked after the deployment was prepared in the zygote).
+8.5 MiB forked after the deployment was prepared), and the nodes do not inherit what only
+the engines need.
 
 Protocol on the zygote's stdin/stdout, one JSON object per line:
 
 - host -> zygote: ``{"id": n, "spec": <NodeSpec>, "env": {...}, "log": "<path>",
   "argv": [...] | null, "cwd": "<dir>" | null, "main": "<module>" | null}`` (``argv`` null:
   a Python node; ``main`` set: ``argv`` is ``python -m <module> ...``, run in the fork);
-- zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to).
+- zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to;
+  for a ``main`` request the branch writes it, on the same pipe).
 
 The zygote's arguments are the modules and implementations to preload; an absolute folder
 among them is the system package's folder, appended to the import path before them;

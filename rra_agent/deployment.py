@@ -20,7 +20,8 @@ from pathlib import Path
 
 from rra_agent.core.features import complete_deployment
 from rra_agent.core.resolution import resolve_deployment
-from rra_agent.models.loader import SystemPackage, load_package
+from rra_agent.errors import RraError
+from rra_agent.models.loader import SystemPackage, load_package, package_root
 from rra_agent.models.system import SystemModel
 
 
@@ -68,36 +69,39 @@ class Deployment:
 
 #: A stamp of the files of a package: (path, size, mtime, ctime, inode) of each.
 Stamp = tuple[tuple[str, int, int, int, int], ...]
+#: The model files a manifest names (they may lie outside the package's folder).
+_MODELS = ("manifest", "features", "system", "deployment", "runtime", "measurements")
 #: Deployments made by `prepare`: (package folder, names) -> (the files' stamp, deployment).
-_prepared: dict[tuple[str, tuple[str, ...]], tuple[Stamp, Deployment]] = {}
+_prepared: dict[tuple[Path, tuple[str, ...]], tuple[Stamp, Deployment]] = {}
 
 
-def _key(path: str | Path, names: Sequence[str]) -> tuple[str, tuple[str, ...]]:
-    return str(Path(path).resolve()), tuple(names)
-
-
-def package_stamp(folder: str | Path) -> Stamp:
-    """Every file under a package folder (but hidden ones and ``__pycache__``), as it is now."""
-    out = []
-    for parent, dirs, files in os.walk(folder):
-        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and d != "__pycache__")
-        for name in sorted(files):
-            path = os.path.join(parent, name)
-            try:
-                st = os.stat(path)
-            except OSError:
-                continue
-            out.append((path, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino))
+def package_stamp(pkg: SystemPackage) -> Stamp:
+    """Every file under the package's folder (but hidden ones and ``__pycache__``) and every
+    model file its manifest names, as they are now (a missing one has only its path)."""
+    paths: set[str] = {str(pkg.file(m)) for m in _MODELS}
+    if pkg.manifest.adaptation is not None:
+        paths.add(str(pkg.file("adaptation")))
+    for parent, dirs, files in os.walk(pkg.root):
+        dirs[:] = [d for d in dirs if not d.startswith(".") and d != "__pycache__"]
+        paths.update(os.path.join(parent, name) for name in files)
+    out: list[tuple[str, int, int, int, int]] = []
+    for path in sorted(paths):
+        try:
+            st = os.stat(path)
+        except OSError:
+            out.append((path, -1, -1, -1, -1))
+            continue
+        out.append((path, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino))
     return tuple(out)
 
 
 def prepare(path: str | Path, names: Sequence[str] = ()) -> Deployment:
     """`deploy` now, and keep the result for the next `deploy` of the same package and
     names in this process or a fork of it (while the package's files stay as they are)."""
-    key = _key(path, names)
-    stamp = package_stamp(key[0])  # before loading: a change while loading is seen later
     dep = _deploy(path, names)
-    _prepared[key] = (stamp, dep)
+    # Stamped after loading: a file changed while it was being loaded may go unnoticed
+    # (prepare runs in the fork server as the run starts, not while a package is edited).
+    _prepared[_key(path, names)] = (package_stamp(dep.package), dep)
     return dep
 
 
@@ -106,11 +110,17 @@ def deploy(path: str | Path, names: Sequence[str] = ()) -> Deployment:
     deployment `prepare`d in this process (or the one it was forked from) is returned as it
     is if the package's files have not changed since."""
     if _prepared:
-        key = _key(path, names)
-        kept = _prepared.get(key)
-        if kept is not None and kept[0] == package_stamp(key[0]):
+        kept = _prepared.get(_key(path, names))
+        if kept is not None and kept[0] == package_stamp(kept[1].package):
             return kept[1]
     return _deploy(path, names)
+
+
+def _key(path: str | Path, names: Sequence[str]) -> tuple[Path, tuple[str, ...]]:
+    try:
+        return package_root(path).resolve(), tuple(names)
+    except RraError:
+        return Path(path), tuple(names)  # never prepared: deploying it says what is wrong
 
 
 def _deploy(path: str | Path, names: Sequence[str]) -> Deployment:

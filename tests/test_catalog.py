@@ -88,6 +88,7 @@ def test_a_prepared_deployment_is_shared_until_a_file_of_the_package_changes(tmp
     prepared = prepare(pkg)
     try:
         assert deploy(pkg) is prepared
+        assert deploy(pkg / "rra.yaml") is prepared  # the same package, by its manifest
         assert deploy(pkg, ["Base"]) is not prepared  # another selection: not that one
         system = pkg / "system.yaml"
         system.write_text(system.read_text() + "\n# changed\n")

@@ -228,8 +228,8 @@ def print_breakdown(layout: str, procs: list[Process]) -> None:
         for kind, kb in p.by_kind.items():
             kinds[kind] += kb
     print(f"\n{layout}: PSS of all processes by mapping (MiB)")
-    by_kind = sorted(([k, v / 1024] for k, v in kinds.items() if v >= 512), key=lambda r: -r[1])
-    print_table(["mapping", "PSS"], by_kind)
+    ordered = sorted(((kb, kind) for kind, kb in kinds.items() if kb >= 512), reverse=True)
+    print_table(["mapping", "PSS"], [[kind, kb / 1024] for kb, kind in ordered])
 
 
 def main() -> int:

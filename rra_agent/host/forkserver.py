@@ -166,7 +166,7 @@ def _warm_mains(mains: Iterable[list[str]]) -> None:
                 warm_up(argv[3:])
 
 
-def serve(host_pid: int, preload: Iterable[str] = (), mains: Iterable[list[str]] = ()) -> int:
+def serve(host_pid: int, preload: Iterable[str] = (), mains: Sequence[list[str]] = ()) -> int:
     """The zygote's main loop (``python -m rra_agent.host.forkserver HOST_PID [--main JSON]...
     [MODULE ...]``)."""
     _preload((*PRELOAD, *preload))
@@ -180,8 +180,7 @@ def serve(host_pid: int, preload: Iterable[str] = (), mains: Iterable[list[str]]
     stdin = sys.stdin.buffer.fileno()
     out = sys.stdout.buffer.fileno()
     spares: list[tuple[int, int]] = []
-    mains = list(mains)
-    branch = _Branch(mains, out, host_pid, spares) if mains else None
+    branch = _Branch(list(mains), out, host_pid, spares) if mains else None
     try:
         return _serve_requests(stdin, out, host_pid, SPARES, spares, branch)
     finally:
@@ -282,7 +281,13 @@ class _Branch:
 
 
 def _start(
-    request: dict[str, Any], line: bytes, spares, out: int, fds, host_pid: int, held=()
+    request: dict[str, Any],
+    line: bytes,
+    spares: list[tuple[int, int]],
+    out: int,
+    fds: list[int],
+    host_pid: int,
+    held: Iterable[int] = (),
 ) -> None:
     """Hand the request to a spare (a node process already: adopted, warm, waiting); with
     none left (or all dead), fork one for it first. Either way it is one kind of process."""
@@ -393,7 +398,7 @@ def _node(request: dict[str, Any]) -> None:
         if argv and not main:
             os.execvpe(argv[0], argv, {**os.environ, **env})
         os.environ.update(env)
-        if main:
+        if main and argv:
             code = run_main(main, argv[3:])
         else:
             from rra_agent.node import run_node

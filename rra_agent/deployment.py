@@ -3,17 +3,25 @@
 Every engine process and the CLI start from the same three steps (paper Fig. 1, left):
 load the package, complete the deployment-time selection, and resolve the Template System
 Model into the Deployment-time Configured System Model.
+
+`prepare` does it ahead of time and keeps the result: the fork server does so for the
+engines it forks (`rra_agent.engines.launch.warm_up`), so that six engines share one
+deployment in memory instead of each loading and resolving the package again (~10 MiB of
+private memory each). `deploy` returns a prepared deployment only while no file of the
+package has changed since (their size, modification and change times, inode).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from rra_agent.core.features import complete_deployment
 from rra_agent.core.resolution import resolve_deployment
-from rra_agent.models.loader import SystemPackage, load_package
+from rra_agent.errors import RraError
+from rra_agent.models.loader import SystemPackage, load_package, package_root
 from rra_agent.models.system import SystemModel
 
 
@@ -59,8 +67,63 @@ class Deployment:
         return sorted({c.host for c in self.configured.components if c.host})
 
 
+#: A stamp of the files of a package: (path, size, mtime, ctime, inode) of each.
+Stamp = tuple[tuple[str, int, int, int, int], ...]
+#: The model files a manifest names (they may lie outside the package's folder).
+_MODELS = ("manifest", "features", "system", "deployment", "runtime", "measurements")
+#: Deployments made by `prepare`: (package folder, names) -> (the files' stamp, deployment).
+_prepared: dict[tuple[Path, tuple[str, ...]], tuple[Stamp, Deployment]] = {}
+
+
+def package_stamp(pkg: SystemPackage) -> Stamp:
+    """Every file under the package's folder (but hidden ones and ``__pycache__``) and every
+    model file its manifest names, as they are now (a missing one has only its path)."""
+    paths: set[str] = {str(pkg.file(m)) for m in _MODELS}
+    if pkg.manifest.adaptation is not None:
+        paths.add(str(pkg.file("adaptation")))
+    for parent, dirs, files in os.walk(pkg.root):
+        dirs[:] = [d for d in dirs if not d.startswith(".") and d != "__pycache__"]
+        paths.update(os.path.join(parent, name) for name in files)
+    out: list[tuple[str, int, int, int, int]] = []
+    for path in sorted(paths):
+        try:
+            st = os.stat(path)
+        except OSError:
+            out.append((path, -1, -1, -1, -1))
+            continue
+        out.append((path, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino))
+    return tuple(out)
+
+
+def prepare(path: str | Path, names: Sequence[str] = ()) -> Deployment:
+    """`deploy` now, and keep the result for the next `deploy` of the same package and
+    names in this process or a fork of it (while the package's files stay as they are)."""
+    dep = _deploy(path, names)
+    # Stamped after loading: a file changed while it was being loaded may go unnoticed
+    # (prepare runs in the fork server as the run starts, not while a package is edited).
+    _prepared[_key(path, names)] = (package_stamp(dep.package), dep)
+    return dep
+
+
 def deploy(path: str | Path, names: Sequence[str] = ()) -> Deployment:
-    """Load and resolve; ``names`` default to the manifest's ``default_selection``."""
+    """Load and resolve; ``names`` default to the manifest's ``default_selection``. A
+    deployment `prepare`d in this process (or the one it was forked from) is returned as it
+    is if the package's files have not changed since."""
+    if _prepared:
+        kept = _prepared.get(_key(path, names))
+        if kept is not None and kept[0] == package_stamp(kept[1].package):
+            return kept[1]
+    return _deploy(path, names)
+
+
+def _key(path: str | Path, names: Sequence[str]) -> tuple[Path, tuple[str, ...]]:
+    try:
+        return package_root(path).resolve(), tuple(names)
+    except RraError:
+        return Path(path), tuple(names)  # never prepared: deploying it says what is wrong
+
+
+def _deploy(path: str | Path, names: Sequence[str]) -> Deployment:
     pkg = load_package(path)
     selection = complete_deployment(pkg.features, list(names) or pkg.manifest.default_selection)
     configured = resolve_deployment(pkg.system, pkg.deployment, pkg.features, selection)

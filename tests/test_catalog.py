@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import shutil
+import sys
 from pathlib import Path
 
 import msgspec
 import pytest
 
 from rra_agent.bus import messages as m
-from rra_agent.deployment import deploy
+from rra_agent.deployment import _prepared, deploy, prepare
 from rra_agent.host.catalog import Catalog, Refused
 from rra_agent.models.system import Command, Supervision
 
@@ -62,3 +64,35 @@ def test_everything_but_the_choice_comes_from_the_model(catalog):
 def test_refusals_say_which_rule(catalog, spec, why):
     with pytest.raises(Refused, match=why):
         catalog.admit(spec)
+
+
+def test_the_builtins_run_by_this_interpreter_are_forked(catalog):
+    """The fork server forks the host agent's own ``python -m`` processes of this
+    interpreter (``rra up``'s engines); another interpreter's command is exec'd."""
+    assert catalog.forked == []  # ``python3 -m x`` is not this interpreter
+    mine = [sys.executable, "-m", "rra_agent.engines.monitor", "--package", str(PACKAGE)]
+    c = Catalog(deploy(PACKAGE).configured, "h1", package_root=PACKAGE)
+    c.add_builtins(
+        m.NodeSpec(system="hosttest", name=n, host="h1", implementation=Command(command=mine))
+        for n in ("monitor-a", "monitor-b")
+    )
+    assert c.forked == [mine]
+
+
+def test_a_prepared_deployment_is_shared_until_a_file_of_the_package_changes(tmp_path):
+    """`prepare` keeps what it deployed: `deploy` of the same package and selection returns
+    that very object (what the engines forked by the fork server share) until a file of
+    the package changes."""
+    pkg = tmp_path / "pkg"
+    shutil.copytree(PACKAGE, pkg)
+    prepared = prepare(pkg)
+    try:
+        assert deploy(pkg) is prepared
+        assert deploy(pkg / "rra.yaml") is prepared  # the same package, by its manifest
+        assert deploy(pkg, ["Base"]) is not prepared  # another selection: not that one
+        system = pkg / "system.yaml"
+        system.write_text(system.read_text() + "\n# changed\n")
+        fresh = deploy(pkg)
+        assert fresh is not prepared and fresh.configured == prepared.configured
+    finally:
+        _prepared.clear()

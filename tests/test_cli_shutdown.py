@@ -1,4 +1,5 @@
-"""A normal shutdown of ``rra up`` logs no failure and leaves no process behind.
+"""A normal shutdown of ``rra up`` logs no failure and leaves no process behind (also after an
+engine, a fork of the fork server, was killed and started again).
 
 A Ctrl-C in a terminal sends SIGINT to the whole foreground process group: ``rra up`` and,
 unless they have a group of their own, every process it started, all at once. The host
@@ -14,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import msgspec
@@ -78,9 +80,10 @@ class Up:
             self.proc.wait()
 
 
-def check_clean(up: Up, pids: set[int]) -> None:
+def check_clean(up: Up, pids: set[int], since: float | None = None) -> None:
     """No failure in anything the shutdown wrote to the run folder or printed (a machine
-    loaded by other work may have restarted a slow engine before); no process left."""
+    loaded by other work may have restarted a slow engine before), nor among the events
+    from ``since`` (default: the first STOPPING); no process left."""
     files = [p for p in up.run_dir.rglob("*") if p.is_file()]
     assert files
     for path in files:
@@ -93,7 +96,7 @@ def check_clean(up: Up, pids: set[int]) -> None:
     assert not FAILURE.search(printed), printed
     log = up.run_dir / "events.jsonl"  # none if stopped before an engine led
     states = [e for e in read_events(log) if isinstance(e, m.NodeState)] if log.exists() else []
-    stop = min((e.stamp for e in states if e.state == "STOPPING"), default=0.0)
+    stop = since or min((e.stamp for e in states if e.state == "STOPPING"), default=0.0)
     for ev in states:
         assert ev.stamp < stop or ev.state not in ("BACKOFF", "FATAL", "EXITED"), ev
     wait_until(lambda: not [p for p in pids if pid_alive(p)], 10, "every process gone")
@@ -151,6 +154,42 @@ def test_ctrl_c_of_a_running_system(tmp_path: Path) -> None:
     events = followed.read_text()
     assert "Traceback" not in events
     assert events.splitlines()[-1] == "system 'relay_system' stopped: no host agent is left"
+
+
+def test_the_engines_are_forks_of_the_fork_server_and_restart_as_such(tmp_path: Path) -> None:
+    """The engines share the fork server's interpreter (`rra_agent.host.forkserver`): each is
+    a fork of it (its command line is the fork server's), a child of ``rra up``, writing its
+    own log. Killed with SIGKILL, an engine is started again the same way; Ctrl-C then stops
+    everything cleanly."""
+    up = Up(tmp_path)
+    try:
+        wait_until(lambda: "Ctrl-C to stop" in up.printed(), 60, "rra up listening")
+
+        def engine(name: str, old: int = 0) -> int | None:
+            pids = re.findall(rf"\b{name}\s+RUNNING pid (\d+)", up.printed())
+            return int(pids[-1]) if pids and int(pids[-1]) != old else None
+
+        names = [f"{e}-{r}" for e in ("monitor", "adaptation", "resolution") for r in "ab"]
+        pids = {n: wait_until(lambda n=n: engine(n), 60, f"{n} running") for n in names}
+        for name, pid in pids.items():
+            check_forked(up, name, pid)
+        os.kill(pids["monitor-a"], signal.SIGKILL)
+        again = wait_until(lambda: engine("monitor-a", pids["monitor-a"]), 60, "its restart")
+        check_forked(up, "monitor-a", again)
+        everything = up.pids() | {again}
+        stopped = time.time()
+        assert up.ctrl_c() == 0, up.printed()
+    finally:
+        up.kill()
+    check_clean(up, everything, since=stopped)
+
+
+def check_forked(up: Up, name: str, pid: int) -> None:
+    cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    assert b"rra_agent.host.forkserver" in cmd, cmd
+    with open(f"/proc/{pid}/stat") as f:
+        assert int(f.read().rsplit(")", 1)[1].split()[1]) == up.proc.pid
+    assert os.readlink(f"/proc/{pid}/fd/1") == str(up.run_dir / "logs" / f"{name}.log")
 
 
 # ---- the supervisor: how a starting process is stopped ----------------------------------------

@@ -1,6 +1,8 @@
 """The fork server and the host's process table: nodes forked from a pre-imported
 interpreter become children of the host agent's process (a subreaper), which reaps them; the
-fork server's death leaves them running; every node beats into its heartbeat slot."""
+fork server's death leaves them running; every node beats into its heartbeat slot. The host
+agent's own ``python -m MODULE`` processes (the engines) run forked, after MODULE's
+``warm_up``, as ``python -m`` would run them."""
 
 from __future__ import annotations
 
@@ -154,7 +156,8 @@ def test_warm_up_runs_once_in_the_fork_server_and_nodes_inherit_it(tmp_path, mon
         zygote = h.zygote.pid
         for i, pid in enumerate(pids):
             log = logs / f"w{i}.log"
-            wait_until(lambda log=log: "warmed in" in log.read_text(), 10, f"w{i} on_start")
+            wait_until(lambda log=log: log.exists() and "warmed in" in log.read_text(), 10,
+                       f"w{i} on_start")  # fmt: skip
             assert f"warmed in {zygote}, running in {pid}" in log.read_text()
     finally:
         h.kill_all()
@@ -213,6 +216,119 @@ def test_spares_end_with_their_fork_server(tmp_path, monkeypatch):
         os.kill(h.zygote.pid, signal.SIGKILL)
         wait_until(lambda: not (set(spares) & _our_children()), 10, "the spares' exit")
         assert pid_alive(first)  # the node it started goes on
+    finally:
+        h.kill_all()
+        hub.close()
+
+
+MAIN_MODULE = """
+import atexit, os, sys
+
+WARMED = []
+
+
+def warm_up(args):
+    WARMED.append((os.getpid(), args))
+
+
+def main(args):
+    atexit.register(lambda: print("atexit ran", flush=True))
+    mine = [pid for pid, warmed in WARMED if warmed == args]
+    print(f"warmed {mine}, main in {os.getpid()} with {args}, argv {sys.argv[1:]}", flush=True)
+    if args[0] == "exit":
+        sys.exit(int(args[1]))
+    if args[0] == "raise":
+        raise RuntimeError("main failed")
+    return int(args[1])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+PROBE_MODULE = """
+import sys
+from rra_agent.node import Node
+
+
+class Probe(Node):
+    def on_start(self):
+        print(f"mainmod imported: {'mainmod' in sys.modules}", flush=True)
+"""
+
+
+def test_the_host_agents_python_modules_run_forked_after_their_warm_up(tmp_path, monkeypatch):
+    """A command the host agent names (``forked``) is not exec'd: the fork server's branch
+    (a fork of the fork server) imported its module and ran ``warm_up(ARGS)`` before forking
+    it, and the fork calls ``main(ARGS)`` with a new interpreter's exit status (returned,
+    ``sys.exit``, an uncaught exception) and ``atexit`` hooks. Any other ``python -m``
+    command is exec'd. Nodes, forked by the fork server itself, do not have the module."""
+    (tmp_path / "mainmod.py").write_text(MAIN_MODULE)
+    (tmp_path / "probe.py").write_text(PROBE_MODULE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.host_router(hub=True))
+    logs = tmp_path / "logs"
+    commands = {
+        name: [sys.executable, "-m", "mainmod", *args]
+        for name, args in [("ret", ["ret", "3"]), ("exit", ["exit", "4"]),
+                           ("raise", ["raise", "0"]), ("other", ["ret", "5"])]
+    }  # fmt: skip
+    forked = [commands[n] for n in ("ret", "exit", "raise")]
+    h = LocalHost("h", bus, logs, preload=["probe.Probe"], forked=forked)
+    try:
+        pids = {name: h.spawn(spec(name, Command(command=cmd))) for name, cmd in commands.items()}
+        assert h.zygote is not None
+        zygote = h.zygote.pid
+        seen: dict[int, int] = {}
+        wait_until(lambda: seen.update(h.reap()) or set(pids.values()) <= set(seen), 10,
+                   "every exit")  # fmt: skip
+        statuses = {name: seen[pid] for name, pid in pids.items()}
+        assert statuses == {"ret": 3, "exit": 4, "raise": 1, "other": 5}
+        log = {name: (logs / f"{name}.log").read_text() for name in commands}
+        branch = int(log["ret"].split("warmed [", 1)[1].split("]", 1)[0])
+        assert branch != zygote and parent_of(branch) == zygote
+        for name in ("ret", "exit", "raise"):
+            args = commands[name][3:]
+            assert (
+                f"warmed [{branch}], main in {pids[name]} with {args}, argv {args}" in log[name]
+            ), log[name]
+            assert "atexit ran" in log[name]
+        assert "RuntimeError: main failed" in log["raise"] and "Traceback" in log["raise"]
+        assert "warmed []" in log["other"]  # exec'd: a new interpreter, no warm-up
+        h.spawn(spec("probe", "probe.Probe"))
+        probe = logs / "probe.log"
+        wait_until(lambda: probe.exists() and "mainmod imported" in probe.read_text(), 10,
+                   "the probe's start")  # fmt: skip
+        assert "mainmod imported: False" in probe.read_text()
+    finally:
+        h.kill_all()
+        hub.close()
+
+
+def test_a_dead_branch_is_forked_again(tmp_path, monkeypatch):
+    """The branch that forks the host agent's own processes may die (killed): the next such
+    start forks a new branch from the fork server, and it warms up again."""
+    (tmp_path / "mainmod.py").write_text(MAIN_MODULE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.host_router(hub=True))
+    logs = tmp_path / "logs"
+    command = [sys.executable, "-m", "mainmod", "ret", "0"]
+    h = LocalHost("h", bus, logs, forked=[command])
+    try:
+        branches = []
+        for i in range(2):
+            pid = h.spawn(spec(f"m{i}", Command(command=command)))
+            assert exits(h, pid) == 0
+            text = (logs / f"m{i}.log").read_text()
+            branches.append(int(text.split("warmed [", 1)[1].split("]", 1)[0]))
+            if i == 0:
+                os.kill(branches[0], signal.SIGKILL)
+                wait_until(lambda: not pid_alive(branches[0]), 10, "the branch's death")
+        assert branches[0] != branches[1]
+        assert h.zygote is not None and parent_of(branches[1]) == h.zygote.pid
     finally:
         h.kill_all()
         hub.close()

@@ -31,6 +31,7 @@ from cryptography.x509.oid import NameOID
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.config import (
+    SHM_OPTIMIZATION,
     BusConfig,
     Tls,
     add_bus_arguments,
@@ -198,6 +199,9 @@ def test_bus_config_identity_and_raw_zenoh_settings(tmp_path: Path) -> None:
     assert cfg.get_json("transport/link/tls/connect_certificate") == f'"{agent.tls.cert}"'
     assert cfg.get_json("transport/shared_memory/enabled") == "false"
     assert cfg.get_json("access_control/enabled") == "true"
+    # Zenoh's implicit shared memory for large samples is off unless the settings say so
+    assert BusConfig().to_zenoh().get_json(SHM_OPTIMIZATION) == "false"
+    assert BusConfig(zenoh={SHM_OPTIMIZATION: True}).to_zenoh().get_json(SHM_OPTIMIZATION) == "true"
     # --bus-config FILE takes Zenoh's own settings (here TLS and ACL) under `zenoh`
     acl = {"enabled": True, "default_permission": "deny"}
     tls_ca = str(tmp_path / HOST / "ca.pem")

@@ -17,7 +17,10 @@ Its children connect to the loopback form of its first listen endpoint. Listenin
 connecting to anything but loopback without TLS is refused unless ``--insecure``.
 
 Multicast scouting is off by default. The transport lease is 500 ms instead of Zenoh's 10 s,
-so a frozen process loses its liveliness token in well under a second.
+so a frozen process loses its liveliness token in well under a second. Zenoh's implicit
+shared memory for samples above 3 KiB (``transport_optimization``, a 16 MiB pool per
+sending process) is off: ``zenoh: {transport/shared_memory/transport_optimization/enabled:
+true}`` in ``--bus-config`` turns it on for systems that send large buffers.
 
 A `BusConfig` is built from defaults, an optional YAML/JSON file (``--bus-config``) and CLI
 flags, in that order, and passed to child processes as JSON in ``RRA_BUS_CONFIG``.
@@ -53,6 +56,8 @@ TLS_HUB = "tls/127.0.0.1:7447"
 ENV_VAR = "RRA_BUS_CONFIG"
 #: Zenoh's connect retry: first after 250 ms, doubling to at most 1 s.
 RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+#: Zenoh's implicit shared memory for large samples: off unless ``zenoh`` turns it on.
+SHM_OPTIMIZATION = "transport/shared_memory/transport_optimization/enabled"
 #: Link protocols that authenticate and encrypt.
 SECURE_PROTOCOLS = ("tls/", "quic/")
 
@@ -229,6 +234,10 @@ class BusConfig(FrozenModel, frozen=True):
         c.insert_json5("scouting/delay", "0")
         c.insert_json5("transport/link/tx/lease", json.dumps(self.lease_ms))
         c.insert_json5("timestamping/enabled", "true")
+        # Zenoh 1.x copies every sample above 3 KiB into a 16 MiB shared-memory pool of the
+        # sender's ("transport optimisation"): ~48 MiB PSS of the object-storing system for
+        # samples of ~10 KiB, which it does not make faster (docs/architecture.md).
+        c.insert_json5(SHM_OPTIMIZATION, "false")
         if self.tls is not None:
             for key, value in self.tls.zenoh_settings().items():
                 c.insert_json5(key, json.dumps(value))

@@ -29,6 +29,7 @@ from rra_agent.host.agent import (
     state_printer,
 )
 from rra_agent.host.catalog import Catalog
+from rra_agent.host.forkserver import trim_heap
 from rra_agent.models.system import Command, Supervision
 
 ENGINES = ("monitor", "adaptation", "resolution")
@@ -178,6 +179,7 @@ def _run(
 
     def start_engines() -> None:
         started.append(True)
+        trim_heap()  # what loading the package freed
         for spec in specs:
             agent.handle(m.StartNode(spec=spec))
         if not args.quiet:

@@ -45,6 +45,7 @@ from rra_agent.core.rules import Engine, TickResult
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
+from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.errors import SelectionError
 from rra_agent.viz.rerun_log import Logger, open_logger
 

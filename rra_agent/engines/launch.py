@@ -4,11 +4,16 @@ An engine started by a host agent finds its name and host in ``RRA_NODE_SPEC`` a
 ``RRA_BUS_CONFIG``, like a node; started by hand it takes ``--name``/``--host`` and the bus
 flags. Model errors are printed as ``file:line:col: message`` and the engine exits with 2
 (the supervisor's "do not restart" status).
+
+`warm_up` is each engine module's hook for the fork server (`rra_agent.host.forkserver`),
+which runs the engines in forks of itself: it prepares the deployment there once
+(`rra_agent.deployment.prepare`), and every engine forked after shares it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 
@@ -16,7 +21,7 @@ import msgspec
 
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.bus.messages import NodeSpec
-from rra_agent.deployment import Deployment, deploy
+from rra_agent.deployment import Deployment, deploy, prepare
 from rra_agent.errors import RraError
 from rra_agent.node import SPEC_ENV
 
@@ -34,6 +39,19 @@ def engine_arguments(prog: str, doc: str | None) -> argparse.ArgumentParser:
     return parser
 
 
+def selection(args: argparse.Namespace) -> list[str]:
+    """The ``--select`` names (each a comma list)."""
+    return [n.strip() for v in args.select for n in v.split(",") if n.strip()]
+
+
+def warm_up(argv: list[str]) -> None:
+    """In the fork server, before it forks an engine with these arguments: load and resolve
+    the package it will (a model error is left for the engine to report)."""
+    args, _ = engine_arguments("rra engine", None).parse_known_args(argv)
+    with contextlib.suppress(RraError):
+        prepare(args.package, selection(args))
+
+
 def engine_setup(
     args: argparse.Namespace, default_name: str
 ) -> tuple[Deployment, BusConfig, str, str] | None:
@@ -47,9 +65,8 @@ def engine_setup(
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
             print(f"{default_name}: bad {SPEC_ENV}: {e}", file=sys.stderr)
             return None
-    names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
     try:
-        dep = deploy(args.package, names)
+        dep = deploy(args.package, selection(args))
         bus = bus_from_args(args)
     except RraError as e:
         print(str(e), file=sys.stderr)

@@ -46,6 +46,7 @@ from rra_agent.core.context import ContextMonitor
 from rra_agent.core.resolution import topic_of
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
+from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.errors import RraError
 from rra_agent.models.pkgimport import add_package_path
 from rra_agent.models.system import parse_endpoint

@@ -54,6 +54,7 @@ from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Executor, Outcome, spec_for
+from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.errors import RraError
 from rra_agent.models.system import Component, ParamValue, SystemModel

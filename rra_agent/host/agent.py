@@ -101,9 +101,15 @@ class HostAgent:
         self.certs = certs
         #: What this host may run (from its own copy of the system model).
         self.catalog = catalog
-        # The fork server imports every implementation and warms it up (`Node.warm_up`).
+        # The fork server imports every implementation and warms it up (`Node.warm_up`),
+        # and forks the built-ins that are this interpreter's `python -m` (the engines).
         self.local = LocalHost(
-            host, self.bus, log_dir, preload=catalog.preload, prober=self._probe_later
+            host,
+            self.bus,
+            log_dir,
+            preload=catalog.preload,
+            forked=catalog.forked,
+            prober=self._probe_later,
         )
         self.local.bus_for = self._child_bus
         self.clock = clock

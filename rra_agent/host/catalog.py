@@ -27,6 +27,7 @@ import msgspec
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import check_chunk
+from rra_agent.host.forkserver import python_module
 from rra_agent.models.system import Component, SystemModel, coerce_parameter
 from rra_agent.node import CONTAINER
 
@@ -71,6 +72,20 @@ class Catalog:
     def add_builtins(self, specs: Iterable[m.NodeSpec]) -> None:
         """Processes this host agent starts on its own (never from a request)."""
         self.builtins.update((s.name, s) for s in specs)
+
+    @property
+    def forked(self) -> list[list[str]]:
+        """The built-ins' commands that are ``python -m MODULE ...`` of this interpreter
+        (``rra up``'s engines): the fork server imports MODULE, lets it prepare (its
+        ``warm_up``) and runs each in a fork of itself instead of a new interpreter
+        (`rra_agent.host.forkserver`)."""
+        out: list[list[str]] = []
+        for spec in self.builtins.values():
+            impl = spec.implementation
+            command = [] if isinstance(impl, str) else list(impl.command)
+            if python_module(command) is not None and command not in out:
+                out.append(command)
+        return out
 
     def container_of(self, name: str) -> str | None:
         """The container a component of this host runs in (None: a process of its own)."""

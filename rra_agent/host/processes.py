@@ -9,6 +9,11 @@ gets its spec in ``RRA_NODE_SPEC``, the bus configuration in ``RRA_BUS_CONFIG``,
 slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), and its output in
 ``<log_dir>/<node>.log``.
 
+A command among ``forked`` (the host agent's own ``python -m MODULE ...`` processes: ``rra
+up``'s engines) is run in the forked process, not ``exec``ed
+(`rra_agent.host.forkserver.run_main`): it shares the zygote's imported modules and what
+MODULE prepared there.
+
 If the fork server dies, the nodes go on: `reap` reports it (``zygote_exits``) and the next
 spawn starts a new one. ``RRA_FORK_SERVER=0`` starts every node as its own command instead
 (``python -m rra_agent.node``), also a direct child.
@@ -26,7 +31,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import msgspec
@@ -37,7 +42,13 @@ from rra_agent.bus.keys import check_chunk
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.host import heartbeat as hb
 from rra_agent.host import scheduling
-from rra_agent.host.forkserver import ForkServer, ForkServerError, become_subreaper, die_with_parent
+from rra_agent.host.forkserver import (
+    ForkServer,
+    ForkServerError,
+    become_subreaper,
+    die_with_parent,
+    python_module,
+)
 from rra_agent.node import SPEC_ENV
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
@@ -90,6 +101,7 @@ class LocalHost:
         *,
         fork_server: bool | None = None,
         preload: Iterable[str] = (),
+        forked: Iterable[Sequence[str]] = (),
         reap_orphans: bool = False,
         prober: Prober | None = None,
     ) -> None:
@@ -107,6 +119,9 @@ class LocalHost:
         if fork_server is None:
             fork_server = os.environ.get("RRA_FORK_SERVER", "1") != "0"
         self._fork_server_wanted = fork_server
+        #: Commands ``python -m MODULE ...`` run in a fork of the zygote (which imports
+        #: MODULE and calls its ``warm_up``), not in a new interpreter.
+        self.forked = [list(c) for c in forked if python_module(list(c)) is not None]
         self._preload = tuple(preload)
         self.zygote: ForkServer | None = None
         #: Exit statuses of fork servers reaped since the host agent last looked.
@@ -129,7 +144,8 @@ class LocalHost:
         if self._fork_server_wanted:
             argv = node_command(spec) if external else None
             cwd = spec.implementation.cwd if external else None  # type: ignore[union-attr]
-            pid = self._zygote().spawn(spec, env, str(log_path), argv=argv, cwd=cwd)
+            main = python_module(argv) if argv in self.forked else None
+            pid = self._zygote().spawn(spec, env, str(log_path), argv=argv, cwd=cwd, main=main)
         else:
             pid = self._exec(spec, env, log_path)
         self.names[pid] = spec.name
@@ -212,7 +228,9 @@ class LocalHost:
     # ---- internals ---------------------------------------------------------------------
     def _zygote(self) -> ForkServer:
         if self.zygote is None or self.zygote.dead:
-            self.zygote = ForkServer(self._preload, pass_fds=[self.heartbeats.fd])
+            self.zygote = ForkServer(
+                self._preload, pass_fds=[self.heartbeats.fd], mains=self.forked
+            )
             self.zygote_starts += 1
         return self.zygote
 

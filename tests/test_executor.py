@@ -304,17 +304,20 @@ def test_an_outgoing_standby_node_is_kept_when_its_replacement_starts_cold(quad)
     assert set(ex.standby) == {"controller"}
 
 
-def hot_executor(quad, transfer: bool = True) -> tuple[Executor, FakeActuator]:
-    """Proploss as a hot standby: the simulator's spec listens to its output in advance."""
+def hot_executor(
+    quad, transfer: bool = True, hot: tuple[str, ...] = ("proploss_controller",)
+) -> tuple[Executor, FakeActuator]:
+    """Proploss (and ``hot``) as hot standbys, deployed with Proploss pre-started: the
+    simulator's spec listens to their outputs in advance."""
     configured, target = quad
     act = FakeActuator()
     rep = Replacement(
-        components={"proploss_controller": "hot-standby"},
+        components=dict.fromkeys(hot, "hot-standby"),
         state_transfer=[StateTransfer(source="controller", target="proploss_controller")]
         if transfer
         else [],
     )
-    held = r.standby_subscriptions(configured, ["proploss_controller"])
+    held = r.standby_subscriptions(configured, hot)
     ex = Executor(act, K, rep, default_host="local", standby_inputs=held)
     deploy(ex, act, target("Standard"))
     swap = swap_plan(target).steps[0]
@@ -352,16 +355,7 @@ def test_a_hot_standby_switch_is_the_consumer_s_rewire_then_the_state(quad):
 
 def test_a_hot_standby_swapped_out_stays_active_for_the_way_back(quad):
     _, target = quad
-    configured, _ = quad
-    act = FakeActuator()
-    hot = ["proploss_controller", "controller"]
-    rep = Replacement(components=dict.fromkeys(hot, "hot-standby"))
-    ex = Executor(act, K, rep, default_host="local",
-                  standby_inputs=r.standby_subscriptions(configured, hot))  # fmt: skip
-    deploy(ex, act, target("Standard"))
-    swap = swap_plan(target).steps[0]
-    pre = spec_for(K, swap.definition, dict(swap.inputs), dict(swap.outputs), default_host="l")
-    ex.prestart_standby([pre])
+    ex, act = hot_executor(quad, transfer=False, hot=("proploss_controller", "controller"))
     act.calls.clear()
     assert ex.execute(swap_plan(target)).ok
     assert not any(c[0] in ("stop", "active") for c in act.calls), act.calls

@@ -120,6 +120,19 @@ def ticks(out: list[dict]) -> list[dict]:
             and isinstance(o.get("value"), int | float)]  # fmt: skip
 
 
+def tick_every_5_s(tmp_path, strategy: str):
+    """The relay package with ``filtered`` swapped in by ``strategy`` and a source ticking
+    every 5 s (Level never stale meanwhile): a sample is one tick, never the next one."""
+    pkg = package_copy(tmp_path)
+    edit_yaml(pkg / "runtime.yaml",
+              lambda d: d["replacement"].update(components={"filtered": strategy}))  # fmt: skip
+    edit_yaml(pkg / "system.yaml", lambda d: d["components"][0]["parameters"]["rate_hz"]
+              .update(value=0.2))  # fmt: skip
+    edit_yaml(pkg / "measurements.yaml",
+              lambda d: d["measurements"][0].update(max_age_ms=60000))  # fmt: skip
+    return pkg
+
+
 def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(system, tmp_path):
     """The sink is rewired before the standby is activated: the sample ``filtered``
     publishes the moment it is activated (its latest, as a standby controller publishes its
@@ -129,14 +142,7 @@ def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(syste
     Level 7 also triggers the switch)."""
     from rra_agent.node import decode_data
 
-    pkg = package_copy(tmp_path)
-    edit_yaml(pkg / "runtime.yaml",
-              lambda d: d["replacement"].update(components={"filtered": "standby"}))  # fmt: skip
-    edit_yaml(pkg / "system.yaml", lambda d: d["components"][0]["parameters"]["rate_hz"]
-              .update(value=0.2))  # fmt: skip
-    edit_yaml(pkg / "measurements.yaml",
-              lambda d: d["measurements"][0].update(max_age_ms=60000))  # fmt: skip
-    sys_ = system(pkg)
+    sys_ = system(tick_every_5_s(tmp_path, "standby"))
     out: list[dict] = []
     sub = sys_.client.session.declare_subscriber(
         K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
@@ -160,14 +166,7 @@ def test_a_hot_standby_switch_is_one_rewire_that_delivers_its_held_output(system
     that carried Level 7 (held by the sink), not the next tick's (5 s later)."""
     from rra_agent.node import decode_data
 
-    pkg = package_copy(tmp_path)
-    hot = {"filtered": "hot-standby"}
-    edit_yaml(pkg / "runtime.yaml", lambda d: d["replacement"].update(components=hot))
-    edit_yaml(pkg / "system.yaml", lambda d: d["components"][0]["parameters"]["rate_hz"]
-              .update(value=0.2))  # fmt: skip
-    edit_yaml(pkg / "measurements.yaml",
-              lambda d: d["measurements"][0].update(max_age_ms=60000))  # fmt: skip
-    sys_ = system(pkg)
+    sys_ = system(tick_every_5_s(tmp_path, "hot-standby"))
     st = sys_.status
     assert st["engine"]["standby"] == ["filtered"]
     filtered_pid = sys_.node(st, "filtered")["pid"]

@@ -148,7 +148,7 @@ class ZenohTransport:
                 continue
             if prev is not None:
                 prev[1].undeclare()
-            cb = self._on_held(port, k) if k in held else self._on_sample(port)
+            cb = self._on_sample(port, k if k in held else None)
             subs[k] = (k in held, self.session.declare_subscriber(k, cb))
         for _, sub in old_subs.values():
             sub.undeclare()
@@ -176,7 +176,9 @@ class ZenohTransport:
 
         self.raw.append(self.session.declare_subscriber(key_expr, on_sample))
 
-    def _on_sample(self, port: str):
+    def _on_sample(self, port: str, held: str | None = None):
+        """The callback of a subscription of ``port``: its samples are delivered, or, on a
+        ``held`` (standby) key, handed to `NodeCore.hold`."""
         unpack = _STAMP.unpack
 
         def callback(sample: zenoh.Sample) -> None:
@@ -185,20 +187,10 @@ class ZenohTransport:
                 return
             att = sample.attachment
             stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
-            core.deliver(port, sample.payload.to_bytes(), stamp)
-
-        return callback
-
-    def _on_held(self, port: str, key: str):
-        unpack = _STAMP.unpack
-
-        def callback(sample: zenoh.Sample) -> None:
-            core = self.core
-            if core is None:
-                return
-            att = sample.attachment
-            stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
-            core.hold(port, key, sample.payload.to_bytes(), stamp)
+            if held is None:
+                core.deliver(port, sample.payload.to_bytes(), stamp)
+            else:
+                core.hold(port, held, sample.payload.to_bytes(), stamp)
 
         return callback
 

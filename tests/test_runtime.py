@@ -140,9 +140,15 @@ def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(syste
     was not yet subscribed and lost it: its first sample through ``filtered`` came with the
     next tick. A tick every 5 s makes the two cases unmistakable (the tick that carries
     Level 7 also triggers the switch)."""
+    sys_ = system(tick_every_5_s(tmp_path, "standby"))
+    first_output_through_filtered_is_the_trigger_tick_s(sys_)
+
+
+def first_output_through_filtered_is_the_trigger_tick_s(sys_) -> None:
+    """Level 7 is set; the sink's first output through ``filtered`` must carry the tick
+    that carried Level 7 (and triggered the switch), not the next one, 5 s later."""
     from rra_agent.node import decode_data
 
-    sys_ = system(tick_every_5_s(tmp_path, "standby"))
     out: list[dict] = []
     sub = sys_.client.session.declare_subscriber(
         K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
@@ -154,7 +160,7 @@ def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(syste
         first = next(o for o in ticks(out) if o["value"] >= 100)
         trigger = [o for o in ticks(out) if 7 <= o["value"] < 100]
         assert trigger, out
-        assert first["seq"] == trigger[-1]["seq"], out  # republished, not the next tick
+        assert first["seq"] == trigger[-1]["seq"], out  # that tick's, not the next one
     finally:
         sub.undeclare()
 
@@ -164,8 +170,6 @@ def test_a_hot_standby_switch_is_one_rewire_that_delivers_its_held_output(system
     which the sink listens to without delivering. The switch starts no process and
     activates nothing: the sink's rewire delivers the output ``filtered`` made of the tick
     that carried Level 7 (held by the sink), not the next tick's (5 s later)."""
-    from rra_agent.node import decode_data
-
     sys_ = system(tick_every_5_s(tmp_path, "hot-standby"))
     st = sys_.status
     assert st["engine"]["standby"] == ["filtered"]
@@ -174,26 +178,13 @@ def test_a_hot_standby_switch_is_one_rewire_that_delivers_its_held_output(system
     sink_in = next(p for p in sys_.ctl("sink", m.Describe()).result["ports"] if p["name"] == "in")
     assert sink_in["keys"] == [K.data("direct/out")]
     assert sink_in["standby"] == [K.data("filtered/out")]
-    out: list[dict] = []
-    sub = sys_.client.session.declare_subscriber(
-        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
-    )
-    try:
-        sys_.set_level(7.0)
-        wait_until(lambda: any(o["value"] >= 100 for o in ticks(out)), 30,
-                   "a sample through filtered")  # fmt: skip
-        first = next(o for o in ticks(out) if o["value"] >= 100)
-        trigger = [o for o in ticks(out) if 7 <= o["value"] < 100]
-        assert trigger, out
-        assert first["seq"] == trigger[-1]["seq"], out  # held and delivered, not the next tick
-        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the switch")
-        assert sys_.node(st, "filtered")["pid"] == filtered_pid
-        swap = next(e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
-                    and any("rewire in of sink" in p for p in e.plan))  # fmt: skip
-        assert not any(p.startswith(("start ", "activate ")) for p in swap.plan), swap.plan
-        assert any(p.startswith("select filtered") for p in swap.plan), swap.plan
-    finally:
-        sub.undeclare()
+    first_output_through_filtered_is_the_trigger_tick_s(sys_)
+    st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the switch")
+    assert sys_.node(st, "filtered")["pid"] == filtered_pid
+    swap = next(e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+                and any("rewire in of sink" in p for p in e.plan))  # fmt: skip
+    assert not any(p.startswith(("start ", "activate ")) for p in swap.plan), swap.plan
+    assert any(p.startswith("select filtered") for p in swap.plan), swap.plan
 
 
 def test_a_swap_inside_a_component_container(system, tmp_path):

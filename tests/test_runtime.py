@@ -358,7 +358,10 @@ def test_nodes_are_placed_on_the_host_the_model_names(system, procs, bus, tmp_pa
         "--no-multicast", "--lease-ms", "500", name="agent-h2",
     )  # fmt: skip
     sys_ = system(pkg)
-    st = sys_.status
+    # The engine reports the deployment once it is applied; each host agent lists its own
+    # nodes in the status, and h2's answer may come in a later gather (CI, under load).
+    st = sys_.wait(lambda s: {"sink", "source", "direct"} <= {n["node"] for n in s["nodes"]},
+                   "every node listed by its host")  # fmt: skip
     hosts = {n["node"]: n["host"] for n in st["nodes"]}
     assert hosts["sink"] == "h2" and hosts["source"] == "local" and hosts["direct"] == "local"
     assert (tmp_path / "h2-logs" / "sink.log").exists()

@@ -188,6 +188,16 @@ def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
 
     h2 = agent()
     sys_ = system(pkg)
+
+    # sink runs on h2: its control endpoint reaches the hub through h2's router, which may
+    # lag its token on a loaded machine (CI: "no reply from node sink within 2 s" once).
+    def answers() -> bool:
+        try:
+            return isinstance(sys_.ctl("sink", m.Ping()), m.Ok)
+        except NoReply:
+            return False
+
+    wait_until(answers, 20, "sink answering")
     set_params(sys_.client, "sink", {"offset": 6.0})
     old = sys_.node(sys_.status, "sink")["pid"]
     h2.kill()  # its nodes die with it

@@ -334,8 +334,21 @@ class NodeCore:
         with self.lock:
             if key in self.ports[port].keys:
                 self.deliver(port, payload, stamp)
-            else:
+            elif self._valid(port, payload):  # junk must not displace a good held sample
                 self._held[(port, key)] = (payload, stamp, self.monotonic())
+
+    def _valid(self, port: str, payload: bytes) -> bool:
+        """Whether ``payload`` is a data sample `deliver` would accept (else dropped, counted)."""
+        if len(payload) > _MAX_DATA:
+            self._drop(port, f"{len(payload)} bytes, more than the {_MAX_DATA} allowed")
+            return False
+        try:
+            ok = isinstance(_DATA_DEC.decode(payload), dict)
+        except msgspec.DecodeError:
+            ok = False
+        if not ok:
+            self._drop(port, "not a msgpack map")
+        return ok
 
     def _replay(self, port: str, keys: Iterable[str]) -> None:
         """Deliver the held samples of newly selected ``keys`` (if young enough)."""

@@ -82,11 +82,14 @@ def test_a_stale_held_sample_is_not_delivered_at_the_switch():
 def test_a_held_sample_is_delivered_once_and_a_malformed_one_is_refused_and_counted():
     now = [10.0]
     core, _ = sink(now)
-    core.hold("cmd", HOT, b"\xc1", None)
+    core.hold("cmd", HOT, encode_data({"n": 0}), None)
+    core.hold("cmd", HOT, b"\xc1", None)  # junk after it: refused, it does not displace it
+    core.hold("cmd", HOT, encode_data([1]), None)
+    assert core.dropped == 2
     select(core, HOT)
-    assert core.node.got == [] and core.dropped == 1
+    assert core.node.got == [{"n": 0}]
+    core.node.got.clear()
     core.hold("cmd", HOT, encode_data({"n": 1}), None)  # selected: delivered as it comes
     select(core, ACTIVE)
     select(core, HOT)  # so nothing was held to replay
-
     assert core.node.got == [{"n": 1}]

@@ -300,8 +300,22 @@ class NodeCore:
             self._guard("step", self.node.step, now)
 
     # ---- data --------------------------------------------------------------------------
-    def deliver(self, port: str, payload: bytes | bytearray | memoryview, stamp: float | None):
-        """A raw sample arrived for input ``port``: decode, count, hand to the node.
+    def deliver(
+        self,
+        port: str,
+        payload: bytes | bytearray | memoryview,
+        stamp: float | None,
+        key: str | None = None,
+    ):
+        """A raw sample arrived for input ``port`` (on ``key``, if the transport says):
+        decode, count, hand to the node.
+
+        A sample on a key the port no longer listens to is not delivered (counted as
+        ``unselected``): one that was on its way when a rewire dropped its producer (already
+        in the subscription's queue, or waiting for this lock while the rewire ran) must not
+        reach the node after the switch, as a command of the controller just swapped out
+        would (seen in ``tools/bench_recovery.py``'s traces: one more physics step driven by
+        the old controller).
 
         The per-sample hot path: decoding and the node call are inlined (no helper frames),
         and the lock is taken without ``with`` (half the cost).
@@ -320,6 +334,9 @@ class NodeCore:
         lock = self.lock
         lock.acquire()
         try:
+            if key is not None and key not in self.ports[port].keys:
+                self.counters.bump("unselected")
+                return
             self.counters.received += 1
             self.node.on_message(port, data, stamp)
         except Exception as e:  # a bug in node code must not reach the bus callback

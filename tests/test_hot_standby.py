@@ -3,6 +3,7 @@ its newest sample without delivering it, and delivers it the moment a rewire sel
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any
 
 from rra_agent.bus import messages as m
@@ -93,3 +94,53 @@ def test_a_held_sample_is_delivered_once_and_a_malformed_one_is_refused_and_coun
     select(core, ACTIVE)
     select(core, HOT)  # so nothing was held to replay
     assert core.node.got == [{"n": 1}]
+
+
+class FakeSession:
+    """Enough of a Zenoh session for `ZenohTransport`: it keeps each subscription's callback."""
+
+    def __init__(self) -> None:
+        self.callbacks: dict[str, Any] = {}
+
+    def declare_subscriber(self, key: str, callback):
+        self.callbacks[key] = callback
+        return SimpleNamespace(undeclare=lambda: None)
+
+    def declare_publisher(self, key: str, **_: Any):
+        return SimpleNamespace(undeclare=lambda: None, put=lambda *a, **k: None)
+
+
+def sample(data: dict[str, Any]) -> SimpleNamespace:
+    payload = encode_data(data)
+    return SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload), attachment=None)
+
+
+def test_a_sample_of_the_producer_swapped_out_is_not_delivered_after_the_switch():
+    """A command of the old controller that was on its way when the rewire dropped it (in
+    its subscription's queue, or waiting for the node's lock while the rewire ran) must not
+    reach the node after the switch: it would drive one more step with the old command."""
+    from rra_agent.bus.runtime import ZenohTransport
+
+    session = FakeSession()
+    transport = ZenohTransport(session)  # type: ignore[arg-type]
+    spec = m.NodeSpec(
+        system="t", name="sim", host="h", implementation=f"{__name__}.Sink",
+        ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
+                                 standby=[HOT])},
+    )  # fmt: skip
+    core = NodeCore(spec, Sink, transport)
+    for name, port in core.ports.items():  # as the node runtime binds them
+        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+    transport.core = core
+    core.start()
+    old = session.callbacks[ACTIVE]  # the old controller's subscription, as it was
+    old(sample({"n": 1}))
+    session.callbacks[HOT](sample({"n": 2}))  # held
+    assert core.node.got == [{"n": 1}]
+    assert isinstance(select(core, HOT), m.Ok)
+    assert core.node.got == [{"n": 1}, {"n": 2}]  # the held one, at the switch
+    old(sample({"n": 3}))  # late: the old controller's, after the switch
+    assert core.node.got == [{"n": 1}, {"n": 2}]
+    assert core.counters.extra["unselected"] == 1
+    session.callbacks[HOT](sample({"n": 4}))
+    assert core.node.got[-1] == {"n": 4}

@@ -148,7 +148,7 @@ class ZenohTransport:
                 continue
             if prev is not None:
                 prev[1].undeclare()
-            cb = self._on_sample(port, k if k in held else None)
+            cb = self._on_sample(port, k, k in held)
             subs[k] = (k in held, self.session.declare_subscriber(k, cb))
         for _, sub in old_subs.values():
             sub.undeclare()
@@ -176,9 +176,9 @@ class ZenohTransport:
 
         self.raw.append(self.session.declare_subscriber(key_expr, on_sample))
 
-    def _on_sample(self, port: str, held: str | None = None):
-        """The callback of a subscription of ``port``: its samples are delivered, or, on a
-        ``held`` (standby) key, handed to `NodeCore.hold`."""
+    def _on_sample(self, port: str, key: str, held: bool = False):
+        """The callback of the subscription of ``port`` to ``key``: its samples are
+        delivered, or, on a ``held`` (standby) key, handed to `NodeCore.hold`."""
         unpack = _STAMP.unpack
 
         def callback(sample: zenoh.Sample) -> None:
@@ -187,10 +187,10 @@ class ZenohTransport:
                 return
             att = sample.attachment
             stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
-            if held is None:
-                core.deliver(port, sample.payload.to_bytes(), stamp)
+            if not held:
+                core.deliver(port, sample.payload.to_bytes(), stamp, key)
             else:
-                core.hold(port, held, sample.payload.to_bytes(), stamp)
+                core.hold(port, key, sample.payload.to_bytes(), stamp)
 
         return callback
 

@@ -185,6 +185,9 @@ def test_a_hot_standby_switch_is_one_rewire_that_delivers_its_held_output(system
                 and any("rewire in of sink" in p for p in e.plan))  # fmt: skip
     assert not any(p.startswith(("start ", "activate ")) for p in swap.plan), swap.plan
     assert any(p.startswith("select filtered") for p in swap.plan), swap.plan
+    for role in ("monitor", "adaptation"):  # Level 7 went through them without a hand-off
+        stats = sys_.client.node(sys_.leader(st, role), m.Stats())
+        assert isinstance(stats, m.Ok) and stats.result["counters"]["inline"] > 0, (role, stats)
 
 
 def test_a_swap_inside_a_component_container(system, tmp_path):

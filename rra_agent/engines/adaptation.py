@@ -107,7 +107,7 @@ class AdaptationProcess(EngineProcess):
             self.measurements[msg.name] = (msg.value, msg.stamp)
             self.changed.add(msg.name)
             schedule, self._scheduled = not self._scheduled, True
-        if schedule and not self.loop.post(self._evaluate_posted):
+        if schedule and not self.loop.run_or_post(self._evaluate_posted):
             with self.lock:
                 self._scheduled = False
 
@@ -195,7 +195,7 @@ class AdaptationProcess(EngineProcess):
         self.conflicts.adopt(_live(c) for c in msg.conflicts)
         self.seq = max(self.seq, msg.seq)
 
-    # ---- evaluation (main thread) ------------------------------------------------------
+    # ---- evaluation (serialised by the main loop: its thread, or inline when idle) -----
     def _evaluate_posted(self) -> None:
         with self.lock:
             self._scheduled = False

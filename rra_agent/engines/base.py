@@ -121,6 +121,7 @@ class EngineProcess:
         c = self.counters
         c.extra.update(self.extra_counters())
         c.extra["refused_busy"] = self.loop.refused
+        c.extra["inline"] = self.loop.inline
         c.extra["leading"] = int(self.leading)
         return c.stats(self.name, self.role, os.getpid())
 

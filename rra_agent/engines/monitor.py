@@ -137,7 +137,7 @@ class MonitorProcess(EngineProcess):
         ep = parse_endpoint(source)
         return self.keys.data(topic_of(self.dep.package.system, ep.component, ep.port))
 
-    # ---- bus (Zenoh thread): keep the newest sample per source, nothing else ---------------
+    # ---- bus (Zenoh thread): keep the newest sample per source, compute if the loop is idle
     def _on_sample(self, source: str) -> Callable[[zenoh.Sample], None]:
         def callback(sample: zenoh.Sample) -> None:
             raw = sample.payload.to_bytes()
@@ -152,7 +152,7 @@ class MonitorProcess(EngineProcess):
                     self.counters.bump("coalesced")
                 self._pending[source] = (raw, stamp)
                 schedule, self._scheduled = not self._scheduled, True
-            if schedule and not self.loop.post(self._process):
+            if schedule and not self.loop.run_or_post(self._process):
                 with self.lock:
                     self._scheduled = False
 
@@ -164,7 +164,7 @@ class MonitorProcess(EngineProcess):
         for msg in latest:
             query.reply(self.keys.ctx(msg.name), _CTX.encode(msg))
 
-    # ---- computing (main thread) -----------------------------------------------------------
+    # ---- computing (serialised by the main loop: its thread, or inline when idle) ----------
     def _process(self) -> None:
         with self.lock:
             batch, self._pending = self._pending, {}

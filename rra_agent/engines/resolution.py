@@ -201,7 +201,8 @@ class ResolutionEngine(EngineProcess):
                 if self.latest is not None and self.latest is not self._taken and self.leading:
                     self.counters.bump("coalesced")  # a newer one came first: it wins
                 self.latest = msg
-            self.loop.post(self._take_latest)
+            if self.leading:  # a standby only keeps it (it acts on it when it takes over)
+                self.loop.post(self._take_latest)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
         raw = sample.payload.to_bytes()

@@ -83,3 +83,21 @@ def test_an_unchanged_measurement_is_sent_again_only_to_stay_fresh(
     assert fix(3, 8) == [("Satellites", 8)]  # a change, at once
     now[0] += max(proc.refresh.values())
     assert len(fix(4, 8)) == 3  # unchanged, but due again to stay fresh
+
+
+def test_a_standby_resolution_engine_keeps_a_selection_without_waking_its_loop() -> None:
+    """A standby replica only keeps the newest selection (it acts on it when it takes over);
+    waking its main loop for each one competed with the leader's plan for the CPU."""
+    from conftest import RELAY
+
+    from rra_agent.engines.resolution import ResolutionEngine
+
+    proc = ResolutionEngine(deploy(RELAY), BusConfig(), name="resolution-b")
+    proc.election = SimpleNamespace(leading=False)  # type: ignore[assignment]
+    sel = m.Selection(seq=1, stamp=1.0, deployment=[], features=["A"], cv={}, changed=True)
+    sample = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: msgspec.msgpack.encode(sel)))
+    proc._on_selection(sample)  # type: ignore[arg-type]
+    assert proc.latest == sel and proc.loop.inbox.empty()
+    proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
+    proc._on_selection(sample)  # type: ignore[arg-type]
+    assert proc.loop.inbox.qsize() == 1  # the leader acts on it

@@ -86,7 +86,7 @@ def control_callback(core: NodeCore, wake: Callable[[], None]):
             else:
                 core.counters.received += 1
                 reply = core.handle(request)
-        query.reply(query.key_expr, _REPLY.encode(reply))
+        query.reply(query.key_expr, _REPLY.encode(reply), **CONTROL_QOS)
         if core.stop_requested.is_set() or (
             isinstance(request, m.SetParams) and "rate_hz" in request.params
         ):
@@ -102,6 +102,12 @@ class NoPeer(RraError):
 def beat_period(heartbeat_timeout: float) -> float:
     """How often a process beats: four times per deadline, between 50 ms and 1 s."""
     return min(1.0, max(0.05, heartbeat_timeout / 4)) if heartbeat_timeout > 0 else 1.0
+
+
+#: Control requests and their replies (the Run-time Resolution Engine's rewires,
+#: activations, state transfers) go ahead of data: a reconfiguration must not queue behind
+#: the 500 Hz samples sharing the router's links, nor wait to be batched.
+CONTROL_QOS: dict[str, Any] = {"priority": zenoh.Priority.INTERACTIVE_HIGH, "express": True}
 
 
 def data_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:

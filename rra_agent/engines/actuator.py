@@ -38,6 +38,7 @@ from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.bus.keys import Keys
+from rra_agent.bus.runtime import CONTROL_QOS
 from rra_agent.engines.executor import Ctl, StepFailed
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
@@ -259,6 +260,7 @@ class ZenohActuator:
                 self.keys.node_ctl(c.spec.name),
                 payload=_ANY.encode(self._fenced(c.request)),
                 timeout=self.request_timeout,
+                **CONTROL_QOS,
             )
             if self.reachable(c.spec.host)
             else None

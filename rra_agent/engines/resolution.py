@@ -158,10 +158,11 @@ class ResolutionEngine(EngineProcess):
         subs = r.subscriptions(model)
         path = (str(self.dep.package.root),)
         held = self.standby_inputs
+        wired = {c.name: r.wiring(c, subs) for c in components}
         return [
             spec_for(
-                self.keys, c, **r.wiring(c, subs), default_host=self.host, path=path,
-                standby=held.get(c.name),
+                self.keys, c, wired[c.name]["inputs"], wired[c.name]["outputs"],
+                default_host=self.host, path=path, standby=held.get(c.name),
             )
             for c in components
         ]  # fmt: skip

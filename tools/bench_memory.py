@@ -13,7 +13,9 @@ from the log file its stdout goes to), its threads, RSS, PSS split into anonymou
 (Python and Rust heaps, stacks), file-backed pages (libraries) and shared memory (Zenoh's
 ``/dev/shm`` segments), and its private dirty pages (what it alone costs); then the PSS of
 all processes by kind of mapping. ``--env NAME=VALUE`` (repeatable) runs ``rra up`` with a
-variable set (e.g. ``MALLOC_ARENA_MAX=2``), for experiments.
+variable set (e.g. ``MALLOC_ARENA_MAX=2``), for experiments. ``--replicas N`` runs ``rra up
+--replicas N`` (default 2: a leader and a hot standby of each engine), to show what the
+engines' standbys cost.
 
     .venv/bin/python tools/bench_memory.py [scenarios/object_storing] [--compare] [--env N=V]
 """
@@ -179,7 +181,9 @@ def snapshot(root_pid: int) -> list[Process]:
     return [p for pid in descendants(root_pid) if (p := process_memory(pid, root_pid))]
 
 
-def measure(package: Path, settle: float, env: dict[str, str]) -> tuple[list[Process], int]:
+def measure(
+    package: Path, settle: float, env: dict[str, str], replicas: int = 2
+) -> tuple[list[Process], int]:
     """(every process, components running) of ``rra up package``."""
     system = load_package(package).system.system
     port = free_port()
@@ -187,7 +191,7 @@ def measure(package: Path, settle: float, env: dict[str, str]) -> tuple[list[Pro
     with tempfile.TemporaryDirectory(prefix="rra-memory-") as run_dir:
         up = subprocess.Popen(
             [sys.executable, "-m", "rra_agent", "up", str(package), "--run-dir", run_dir,
-             "-q", "--connect", endpoint, "--no-multicast"],
+             "-q", "--connect", endpoint, "--no-multicast", "--replicas", str(replicas)],
             env={**os.environ, "RERUN_ANALYTICS": "0", **env},
         )  # fmt: skip
         client = None
@@ -240,6 +244,8 @@ def main() -> int:
     ap.add_argument("--compare", action="store_true", help="both: processes and containers")
     ap.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
                     help="a variable for rra up and its processes (repeatable)")  # fmt: skip
+    ap.add_argument("--replicas", type=int, default=2,
+                    help="replicas of each engine (rra up --replicas; default 2)")  # fmt: skip
     args = ap.parse_args()
     env = dict(e.split("=", 1) for e in args.env)
     package = Path(args.package).resolve()
@@ -249,12 +255,13 @@ def main() -> int:
             ["one container"] if args.containers else ["processes"])  # fmt: skip
         for layout in layouts:
             pkg = package if layout == "processes" else contained(package, Path(tmp) / "c")
-            procs, running = measure(pkg, args.settle, env)
+            procs, running = measure(pkg, args.settle, env, args.replicas)
             rss, pss = (sum(p.mib(k) for p in procs) for k in ("Rss", "Pss"))
             rows.append([layout, running, len(procs), rss, pss, f"<= {GOAL_PSS_MIB:g}"])
             print_breakdown(layout, procs)
     print()
-    extra = f" ({' '.join(args.env)})" if args.env else ""
+    extra = " ".join([*args.env, *([f"--replicas {args.replicas}"] if args.replicas != 2 else [])])
+    extra = f" ({extra})" if extra else ""
     print(f"memory of {package.name} under rra up (every process: agent, engines, nodes){extra}")
     print_table(["layout", "components", "processes", "RSS MiB", "PSS MiB", "goal PSS MiB"],
                 rows)  # fmt: skip

@@ -11,7 +11,7 @@ the work (and counts it) when the inbox is full, and the caller answers "busy".
 Short work on the latency path (a measurement to compute, rules to evaluate) may instead be
 run *on the arriving thread* with `run_or_post`, when the main thread is idle in ``select``
 and nothing is waiting in the inbox: that saves the wake-up of the main thread and the GIL's
-hand-over, about 0.2-0.3 ms per process on a busy two-core machine (issue 12). The main
+hand-over, 0.1-0.25 ms per process in the traces of a busy two-core machine (issue 12). The main
 thread holds the loop's lock at all times except while it waits, so such a job is still
 serialised with everything else the loop runs. Like interrupt mitigation in a network
 driver, this is for sparse events only: a job runs inline only while the inline share of

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
 
 from rra_agent.bus import loop as loop_mod
+from rra_agent.bus.client import wait_until
 from rra_agent.bus.loop import MainLoop
 
 
@@ -34,13 +35,6 @@ def running() -> Iterator[tuple[MainLoop, threading.Thread]]:
     assert not t.is_alive()
 
 
-def wait_for(cond: Callable[[], bool], deadline: float = 5.0) -> None:
-    end = time.monotonic() + deadline
-    while not cond():
-        assert time.monotonic() < end, "condition not met in time"
-        time.sleep(0.001)
-
-
 def until_idle(loop: MainLoop) -> None:
     """The loop's thread is waiting in ``select`` (it has released the loop's lock)."""
 
@@ -50,7 +44,7 @@ def until_idle(loop: MainLoop) -> None:
             return True
         return False
 
-    wait_for(idle)
+    wait_until(idle, 5, "the loop idle in select", interval=0.001)
 
 
 def test_an_idle_loop_lets_the_arriving_thread_run_the_job(running):
@@ -83,7 +77,7 @@ def test_a_busy_loop_gets_the_job_posted_and_runs_it_after_its_current_work(runn
     assert loop.run_or_post(job)
     assert ran_on == []  # not run concurrently with the main thread's job
     release.set()
-    wait_for(lambda: len(order) == 2)
+    wait_until(lambda: len(order) == 2, 5, "both jobs")
     assert order == ["long", "short"] and ran_on == [main.ident]
     assert loop.inline == 0
 
@@ -95,7 +89,7 @@ def test_work_already_waiting_goes_first(running):
     with loop._owner:  # the main thread is momentarily busy: the first job waits in the inbox
         loop.post(lambda: order.append("first"))
         assert loop.run_or_post(lambda: order.append("second"))
-    wait_for(lambda: len(order) == 2)
+    wait_until(lambda: len(order) == 2, 5, "both jobs")
     assert order == ["first", "second"]
 
 
@@ -131,7 +125,7 @@ def test_a_flood_falls_back_to_the_hand_off(running, monkeypatch):
     for _ in range(12):
         until_idle(loop)
         loop.run_or_post(slow)
-    wait_for(lambda: len(threads) == 12)
+    wait_until(lambda: len(threads) == 12, 5, "all twelve jobs")
     inline = threads.count(me)
     assert 1 <= inline <= 8 and threads == [me] * inline + [main.ident] * (12 - inline)
     assert loop.inline == inline

@@ -472,6 +472,13 @@ def test_components_in_a_container_share_a_process_and_keep_their_own_endpoints(
         assert ok(client.node("c_relay2", m.Describe()))["pid"] == one.pid  # type: ignore[index]
         bad = client.node("c_relay2", m.SetParams(params={"offset": 99.0}))
         assert isinstance(bad, m.Err)  # its own declared bounds
+        # state export and import, per component: c_relay2 takes c_relay1's count over
+        counts = [ok(client.node(n, m.ExportState())) for n in ("c_relay1", "c_relay2")]
+        for n, c in zip(("c_relay1", "c_relay2"), counts, strict=True):
+            assert isinstance(c, dict) and c["count"] >= max(1, len(outs.by[n])), (n, c)
+        ok(client.node("c_relay2", m.ImportState(state={"count": 1000})))
+        assert ok(client.node("c_relay2", m.ExportState())) == {"count": 1000}
+        assert ok(client.node("c_relay1", m.ExportState())) == counts[0]
         # rewire one input alone: c_relay2 now listens to "src2" only
         ok(client.node("c_relay2", m.Rewire(port="in", keys=[K.data("src2")])))
         n = len(watch.states)

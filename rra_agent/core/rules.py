@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import msgspec
 
@@ -49,6 +49,7 @@ from rra_agent.core.conflicts import (
     target_text,
 )
 from rra_agent.core.features import (
+    Request,
     apply_requests,
     check_selection,
     complete_deployment,
@@ -274,6 +275,9 @@ _COERCE: dict[str | None, Callable[[Any], Any]] = {
 
 
 # ---- compilation -------------------------------------------------------------------------------
+_ActionKind = Literal["activate", "deactivate", "set", "reject"]
+
+
 @dataclass(slots=True)
 class _ActionInfo:
     """A compiled action: what it does, its report template and its contested claims."""
@@ -282,12 +286,12 @@ class _ActionInfo:
     unit: int
     branch: tuple[int, int]  # (rule number, branch number): same-branch conflicts
     fired: FiredRule
-    kind: str  # activate | deactivate | set | reject
+    kind: _ActionKind
     features: tuple[str, ...] = ()
     cv: int = -1
     reason: str = ""
     claims: list[tuple[ClaimKey, str]] = field(default_factory=list)
-    requests: list[tuple[str, str]] = field(default_factory=list)
+    requests: list[Request] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -465,8 +469,9 @@ class _Compiler:
             case SetAttribute(target=t):
                 info.kind, info.cv = "set", self.cv_index[(t.feature, t.name)]
         info.claims = claims
-        if info.kind in ("activate", "deactivate"):
-            info.requests = [(info.kind, f) for f in info.features]
+        kind = info.kind
+        if kind == "activate" or kind == "deactivate":
+            info.requests = [(kind, f) for f in info.features]
         return info
 
     def _set(self, indent: int, k: int, action: SetAttribute) -> None:
@@ -833,7 +838,7 @@ class Engine:
         fired: list[FiredRule] = []
         rejected: list[Rejected] = []
         conflicts: list[ConflictRecord] = []
-        requests: list[tuple[str, str]] = []
+        requests: list[Request] = []
         sources: list[int] = []
         owners: dict[ClaimKey, tuple[str, int, _ActionInfo]] = {}
         requested = self._requested
@@ -926,14 +931,14 @@ class Engine:
 
     def _select(
         self,
-        requests: list[tuple[str, str]],
+        requests: list[Request],
         sources: list[int],
         fired: list[FiredRule],
         rejected: list[Rejected],
     ) -> frozenset[str]:
         """Apply the feature requests; the selection stays valid (else the previous one)."""
         current = self.selection
-        live: list[tuple[str, str]] = []
+        live: list[Request] = []
         live_sources: list[int] = []
         if self.forced:  # newly forced features first: the rules' requests apply on top
             current = overrides.enforce(self.fm, self.deployment, current, self.forced) or current
@@ -970,7 +975,7 @@ class Engine:
         self,
         selection: frozenset[str],
         before: frozenset[str],
-        live: list[tuple[str, str]],
+        live: list[Request],
         sources: list[int],
         fired: list[FiredRule],
         rejected: list[Rejected],
@@ -988,8 +993,8 @@ class Engine:
         return result
 
     def _reduce(
-        self, live: list[tuple[str, str]], sources: list[int], current: frozenset[str]
-    ) -> tuple[list[tuple[str, str]], list[int]]:
+        self, live: list[Request], sources: list[int], current: frozenset[str]
+    ) -> tuple[list[Request], list[int]]:
         """Drop the requests that cannot change the outcome of `apply_requests`.
 
         A request only changes features of its own family (`_families`). Within a family, a
@@ -1121,8 +1126,8 @@ def _free_leaves(fm: FeatureModel) -> dict[str, str]:
 
 
 def _supersedes(
-    request: tuple[str, str],
-    earlier: tuple[str, str],
+    request: Request,
+    earlier: Request,
     leaf_group: dict[str, tuple[int, str]],
     free: dict[str, str],
     active: tuple[frozenset[str], frozenset[str]],

@@ -467,6 +467,10 @@ class _Compiler:
                         f"is selectable with the deployment-time selection"
                     )
             case SetAttribute(target=t):
+                if t.feature is None:  # pragma: no cover - the resolver names every owner
+                    raise ValueError(
+                        f"set_attribute({t.name}): the attribute's owner is unresolved"
+                    )
                 info.kind, info.cv = "set", self.cv_index[(t.feature, t.name)]
         info.claims = claims
         kind = info.kind

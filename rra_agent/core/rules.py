@@ -833,9 +833,9 @@ class Engine:
                 raw[i] = value
                 M[i] = coerce(value)
         for name in changed:
-            i = self._slot_of.get(name)
-            if i is not None:
-                fresh.append(i)
+            slot = self._slot_of.get(name)
+            if slot is not None:
+                fresh.append(slot)
         return fresh
 
     def _collect(self, out: list[int]):

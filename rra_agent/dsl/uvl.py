@@ -124,6 +124,13 @@ class _UvlIndenter(Indenter):
             yield tok
 
 
+def _position(line: int | None, col: int | None) -> tuple[int, int]:
+    """A position lark left Optional; its lexer sets it on every token it makes."""
+    if line is None or col is None:  # pragma: no cover - only hand-made tokens lack one
+        raise ValueError("a UVL token without a position in the text")
+    return line, col
+
+
 def _token_at_end(tok: Token) -> Token:
     """The token moved to where its (borrowed) position ends: the next line's first column."""
     end_line, end_col, end_pos = tok.end_line, tok.end_column, tok.end_pos
@@ -261,16 +268,24 @@ def _syntax_error(e: UnexpectedInput, src: _Source) -> DslSyntaxError:
     return src.syntax_error("input", e.line, e.column, expected)  # pragma: no cover
 
 
+def _indenter(parser: Lark) -> _UvlIndenter:
+    """The postlexer `_parser` builds ``parser`` with."""
+    postlex = parser.options.postlex
+    if not isinstance(postlex, _UvlIndenter):  # pragma: no cover - _parser always sets it
+        raise TypeError(f"the UVL parser's postlexer is {postlex!r}, not a _UvlIndenter")
+    return postlex
+
+
 def _indent_error(e: _IndentError, src: _Source) -> DslSyntaxError:
-    tok = e.token
+    line, col = _position(e.token.end_line, e.token.end_column)
     # The Indenter has popped the blocks this line closes; the rest are the dedent targets.
-    columns = [f"{n + 1}" for n in _parser().options.postlex.indent_level]
+    columns = [f"{n + 1}" for n in _indenter(_parser()).indent_level]
     return DslSyntaxError(
-        f"inconsistent dedent to column {tok.end_column}, which matches no enclosing block "
+        f"inconsistent dedent to column {col}, which matches no enclosing block "
         f"(expected column {' or '.join(columns)})",
-        Location(src.file, tok.end_line, tok.end_column),
+        Location(src.file, line, col),
         expected=[f"indentation to column {c}" for c in columns],
-        source_line=_line_of(src.text, tok.end_line),
+        source_line=_line_of(src.text, line),
     )
 
 
@@ -278,13 +293,13 @@ def _parse_tree(text: str, file: str) -> Tree:
     """lark's parse tree of ``text``; every failure becomes a located `DslSyntaxError`."""
     padded = text if text.endswith("\n") else text + "\n"
     parser = _parser()
-    indenter: _UvlIndenter = parser.options.postlex
+    indenter = _indenter(parser)
     with _PARSE_LOCK:
         try:
             return parser.parse(padded)
         except (UnexpectedInput, _IndentError) as e:
             last = indenter.last_token
-            eof = (last.end_line, last.end_column) if last is not None else (1, 1)
+            eof = _position(last.end_line, last.end_column) if last is not None else (1, 1)
             src = _Source(padded, file, eof)
             if isinstance(e, _IndentError):
                 raise _indent_error(e, src) from None
@@ -394,7 +409,7 @@ class _ToModel(Transformer_NonRecursive):
         return Span(self.file, line, col)
 
     def _tok_span(self, tok: Token) -> Span:
-        return self._span(tok.line, tok.column)
+        return self._span(*_position(tok.line, tok.column))
 
     def _int(self, tok: Token) -> int:
         try:

@@ -21,7 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgspec
 from lark import Lark, Token, Tree, v_args
@@ -44,9 +44,11 @@ from rra_agent.models.features import (
     Aggregate,
     And,
     Arith,
+    ArithOp,
     Attribute,
     Cardinality,
     Compare,
+    CompareOp,
     Constraint,
     ConstraintList,
     Equiv,
@@ -54,6 +56,7 @@ from rra_agent.models.features import (
     Feature,
     FeatureModel,
     Group,
+    GroupKind,
     Implies,
     Import,
     Not,
@@ -388,6 +391,22 @@ def _describe(e: Expr) -> str:
     return "a condition"
 
 
+#: The grammar's group keywords and operators, as the model's Literal values.
+_GROUP_KEYWORDS: tuple[GroupKind, ...] = ("mandatory", "optional", "alternative", "or")
+_COMPARE_OPS: tuple[CompareOp, ...] = ("==", "!=", "<", "<=", ">", ">=")
+_ARITH_OPS: tuple[ArithOp, ...] = ("+", "-", "*", "/")
+
+_Word = TypeVar("_Word", bound=str)
+
+
+def _one_of(tok: Token, allowed: tuple[_Word, ...]) -> _Word:
+    """``tok``'s text as the one of the ``allowed`` values it is (the grammar admits no other)."""
+    for value in allowed:
+        if tok == value:
+            return value
+    raise ValueError(f"{tok!r} is none of {allowed}")  # pragma: no cover - grammar guarantees
+
+
 @v_args(meta=True)
 class _ToModel(Transformer_NonRecursive):
     """Parse tree -> model objects. Problems are collected in `errors`, never raised."""
@@ -535,7 +554,7 @@ class _ToModel(Transformer_NonRecursive):
     def group(self, meta: Meta, children: list[Any]) -> Group:
         keyword, members = children
         span = self._tok_span(keyword)
-        return Group(kind=str(keyword), children=members or (), span=span)
+        return Group(kind=_one_of(keyword, _GROUP_KEYWORDS), children=members or (), span=span)
 
     def cardinality_group(self, meta: Meta, children: list[Any]) -> Group:
         (lower, upper), members = children
@@ -632,12 +651,14 @@ class _ToModel(Transformer_NonRecursive):
 
     def comparison(self, meta: Meta, children: list[Any]) -> Expr:
         left, op, right = children
-        compare = Compare(op=str(op), left=self._term(left), right=self._term(right))
+        compare = Compare(
+            op=_one_of(op, _COMPARE_OPS), left=self._term(left), right=self._term(right)
+        )
         return self._located(compare, meta)
 
     def arithmetic(self, meta: Meta, children: list[Any]) -> Expr:
         left, op, right = children
-        arith = Arith(op=str(op), left=self._term(left), right=self._term(right))
+        arith = Arith(op=_one_of(op, _ARITH_OPS), left=self._term(left), right=self._term(right))
         return self._located(arith, meta)
 
     def negative(self, meta: Meta, children: list[Any]) -> Expr:

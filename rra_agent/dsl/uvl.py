@@ -1349,8 +1349,8 @@ def _format_expr(e: Expr, context: int = 0) -> str:
             | Arith(left=a, right=b)
         ):
             p = _precedence(e)  # left-associative: the right operand must bind tighter
-            op = e.op if isinstance(e, Arith) else _OPERATOR[type(e)]
-            text = f"{_format_expr(a, p)} {op} {_format_expr(b, p + 1)}"
+            sym = e.op if isinstance(e, Arith) else _OPERATOR[type(e)]
+            text = f"{_format_expr(a, p)} {sym} {_format_expr(b, p + 1)}"
         case _:
             raise RraError(f"not a constraint expression: {e!r}")
     return f"({text})" if _precedence(e) < context else text
@@ -1405,8 +1405,10 @@ def _strip_expr(e: Expr) -> Expr:
             return Not(operand=_strip_expr(o))
         case And() | Or() | Implies() | Equiv():
             return type(e)(left=_strip_expr(e.left), right=_strip_expr(e.right))
-        case Compare() | Arith():
-            return type(e)(op=e.op, left=_strip_expr(e.left), right=_strip_expr(e.right))
+        case Compare():
+            return Compare(op=e.op, left=_strip_expr(e.left), right=_strip_expr(e.right))
+        case Arith():
+            return Arith(op=e.op, left=_strip_expr(e.left), right=_strip_expr(e.right))
     raise RraError(f"not a constraint expression: {e!r}")
 
 

@@ -928,7 +928,12 @@ class _Checker:
                 and len(set(scale)) == len(scale)
             )
             what = "a list of distinct strings, lowest first"
-            if self.require(a, "scale", what, good_scale) and ok and isinstance(value, str):
+            if (
+                self.require(a, "scale", what, good_scale)
+                and ok
+                and isinstance(value, str)
+                and isinstance(scale, list)  # good_scale says so; for the type checker
+            ):
                 self.require(a, "value", f"one of the scale {scale}", value in scale)
 
     def check_nfr(self, a: Attribute, cvs: set[str]) -> None:
@@ -1169,7 +1174,8 @@ def _parse_uvl(text: str, file: str) -> FeatureModel:
         imports=parsed.imports,
     )
     errors += check_feature_model(fm, to_model.key_spans)
-    ErrorGroup.raise_if_any(sorted(errors, key=_error_order))
+    errors.sort(key=_error_order)
+    ErrorGroup.raise_if_any(errors)
     return fm
 
 

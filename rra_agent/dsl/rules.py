@@ -112,9 +112,7 @@ def parse_rules(
         model = resolver.model(raw)
     except RecursionError:  # pragma: no cover - depth is bounded before anything recurses
         raise DslSyntaxError("rules nested too deeply", Location(file, 1, 1)) from None
-    errors = sorted(
-        builder.errors + resolver.errors, key=lambda e: (e.location.line, e.location.col)
-    )
+    errors = sorted(builder.errors + resolver.errors, key=_source_order)
     ErrorGroup.raise_if_any(errors)
     return model
 
@@ -424,6 +422,12 @@ class _Builder(Transformer_NonRecursive):
 def _unquote(token: Token) -> str:
     body = str(token)[1:-1]
     return re.sub(r"\\(.)", lambda m: _ESCAPES.get(m.group(1), m.group(0)), body)
+
+
+def _source_order(e: SemanticError) -> tuple[int, int]:
+    """Where ``e`` is in the file; `_located` places every error, so none sorts first."""
+    loc = e.location
+    return (loc.line, loc.col) if loc is not None else (0, 0)
 
 
 def _located(message: str, span: Span | None, file: str, lines: list[str]) -> SemanticError:

@@ -146,7 +146,7 @@ def _syntax_error(e: UnexpectedInput, text: str, file: str, lines: list[str]) ->
         what = repr(str(e.token))
     elif isinstance(e, UnexpectedCharacters):
         line, col = e.line, e.column
-        what = f"character {text[e.pos_in_stream]!r}"
+        what = f"character {e.char!r}"  # text[e.pos_in_stream], which lark types as None
     else:  # pragma: no cover - the LALR front end raises only the two above
         line, col, what = e.line or 1, e.column or 1, "input"
     expected = sorted({_terminal_text(t) for t in _expected(e)})

@@ -161,8 +161,8 @@ class HostAgent:
             stamp=time.time(),
             node=t.node,
             host=t.host,
-            state=t.state.value,  # type: ignore[arg-type]
-            previous=t.previous.value,  # type: ignore[arg-type]
+            state=t.state.wire,
+            previous=t.previous.wire,
             pid=t.pid,
             implementation=m.implementation_id(p.spec) if p else "",
             active=p.spec.active if p else True,
@@ -484,7 +484,7 @@ class HostAgent:
                 stamp=now,
                 node=name,
                 host=self.host,
-                state=p.state.value,  # type: ignore[arg-type]
+                state=p.state.wire,
                 pid=p.pid,
                 implementation=m.implementation_id(p.spec),
                 active=p.spec.active,

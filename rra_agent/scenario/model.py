@@ -338,7 +338,9 @@ class _Loader:
         timeline = self.timeline(c, at, duration)
         names = {t.step.name for t in timeline if t.step.name}
         expectations: list[x.Expectation] = []
-        texts = [(text, ("expect", i)) for i, text in enumerate(sc.expect)]
+        texts: list[tuple[str, tuple[PathItem, ...]]] = [
+            (text, ("expect", i)) for i, text in enumerate(sc.expect)
+        ]
         if c is not None:
             texts += [(text, (*at, "expect", i)) for i, text in enumerate(c.expect)]
         for text, where in texts:
@@ -392,7 +394,9 @@ class _Loader:
     def timeline(
         self, c: Case | None, at: tuple[PathItem, ...], duration: float
     ) -> list[TimedStep]:
-        entries = [(s, ("timeline", i)) for i, s in enumerate(self.scenario.timeline)]
+        entries: list[tuple[Step, tuple[PathItem, ...]]] = [
+            (s, ("timeline", i)) for i, s in enumerate(self.scenario.timeline)
+        ]
         if c is not None:
             entries += [(s, (*at, "timeline", i)) for i, s in enumerate(c.timeline)]
         out: list[TimedStep] = []

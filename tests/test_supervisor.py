@@ -4,10 +4,11 @@ observations a host agent feeds it (exits from the OS, heartbeats, probe answers
 from __future__ import annotations
 
 import signal
+import typing
 
 import pytest
 
-from rra_agent.bus.messages import NodeSpec
+from rra_agent.bus.messages import NodeSpec, NodeStateName
 from rra_agent.host.supervisor import (
     Beat,
     Notice,
@@ -310,3 +311,9 @@ def test_spawn_failure_counts_as_a_failure(rig: Rig) -> None:
     rig.sup.start("n", 0.0)
     assert rig.state() == State.BACKOFF
     assert "spawn failed" in rig.events[-1].reason
+
+
+def test_states_are_the_wire_names() -> None:
+    # State.wire casts its value to NodeStateName: the two must list the same names.
+    assert [s.wire for s in State] == [s.value for s in State]
+    assert {s.wire for s in State} == set(typing.get_args(NodeStateName))

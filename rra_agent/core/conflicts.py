@@ -21,7 +21,7 @@ a particular deployment selection is not considered (see docs/rules.md).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from itertools import product
 from typing import Literal
@@ -359,7 +359,7 @@ def _compare(cmp: Compare, positive: bool, fm: FeatureModel) -> list[list[_Lit]]
         if op not in ("==", "!="):  # pragma: no cover - rejected by the type checker
             return [[_opaque(cmp, positive)]]
         return [[_Lit("bool", _var(var), "==", const == (op == "=="))]]
-    kind = "str" if isinstance(const, str) else "num"
+    kind: Literal["str", "num"] = "str" if isinstance(const, str) else "num"
     return [[_Lit(kind, _var(var), op, const)]]
 
 
@@ -437,7 +437,14 @@ _ARITH = {
     "/": lambda a, b: a / b,
     "^": math.pow,
 }
-_CALLS = {"exp": math.exp, "log": math.log, "sqrt": math.sqrt, "abs": abs, "min": min, "max": max}
+_CALLS: dict[str, Callable[..., float]] = {
+    "exp": math.exp,
+    "log": math.log,
+    "sqrt": math.sqrt,
+    "abs": abs,
+    "min": min,
+    "max": max,
+}
 
 
 def _evaluate_compare(op: str, a: object, b: object) -> bool | None:

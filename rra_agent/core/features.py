@@ -71,8 +71,8 @@ class Violation:
 # ---- compiled model ------------------------------------------------------------------------
 
 _REF, _NOT, _AND, _OR, _IMP, _EQV, _FALSE = range(7)
-_PREC = {Equiv: 1, Implies: 2, Or: 3, And: 4, Not: 5, Ref: 6}
-_OPS = {Equiv: "<=>", Implies: "=>", Or: "|", And: "&"}
+_PREC: dict[type, int] = {Equiv: 1, Implies: 2, Or: 3, And: 4, Not: 5, Ref: 6}
+_OPS: dict[type, str] = {Equiv: "<=>", Implies: "=>", Or: "|", And: "&"}
 _IDENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -622,8 +622,8 @@ class _Context:
             except SelectionError as e:
                 self._default = e
         if isinstance(self._default, SelectionError):
-            e = self._default
-            raise SelectionError(e.args[0].split("\n", 1)[0], e.reasons)
+            err = self._default
+            raise SelectionError(err.args[0].split("\n", 1)[0], err.reasons)
         return self._default
 
     def names(self, ints: Iterable[int]) -> frozenset[str]:

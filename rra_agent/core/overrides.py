@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping, Sequence
 from typing import Literal
 
-from rra_agent.core.features import apply_requests
+from rra_agent.core.features import Request, apply_requests
 from rra_agent.errors import RraError
 from rra_agent.models.features import FeatureModel
 
@@ -26,7 +26,7 @@ class OverrideError(RraError):
     """An override the feature model does not allow (the message is one line)."""
 
 
-def requests_for(forced: Mapping[str, bool]) -> list[tuple[str, str]]:
+def requests_for(forced: Mapping[str, bool]) -> list[Request]:
     """The (de)activation requests that put every forced feature in its forced state."""
     return [("activate" if on else "deactivate", f) for f, on in sorted(forced.items())]
 

@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import msgspec
 
@@ -49,6 +49,7 @@ from rra_agent.core.conflicts import (
     target_text,
 )
 from rra_agent.core.features import (
+    Request,
     apply_requests,
     check_selection,
     complete_deployment,
@@ -274,6 +275,9 @@ _COERCE: dict[str | None, Callable[[Any], Any]] = {
 
 
 # ---- compilation -------------------------------------------------------------------------------
+_ActionKind = Literal["activate", "deactivate", "set", "reject"]
+
+
 @dataclass(slots=True)
 class _ActionInfo:
     """A compiled action: what it does, its report template and its contested claims."""
@@ -282,12 +286,12 @@ class _ActionInfo:
     unit: int
     branch: tuple[int, int]  # (rule number, branch number): same-branch conflicts
     fired: FiredRule
-    kind: str  # activate | deactivate | set | reject
+    kind: _ActionKind
     features: tuple[str, ...] = ()
     cv: int = -1
     reason: str = ""
     claims: list[tuple[ClaimKey, str]] = field(default_factory=list)
-    requests: list[tuple[str, str]] = field(default_factory=list)
+    requests: list[Request] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -463,10 +467,15 @@ class _Compiler:
                         f"is selectable with the deployment-time selection"
                     )
             case SetAttribute(target=t):
+                if t.feature is None:  # pragma: no cover - the resolver names every owner
+                    raise ValueError(
+                        f"set_attribute({t.name}): the attribute's owner is unresolved"
+                    )
                 info.kind, info.cv = "set", self.cv_index[(t.feature, t.name)]
         info.claims = claims
-        if info.kind in ("activate", "deactivate"):
-            info.requests = [(info.kind, f) for f in info.features]
+        kind = info.kind
+        if kind == "activate" or kind == "deactivate":
+            info.requests = [(kind, f) for f in info.features]
         return info
 
     def _set(self, indent: int, k: int, action: SetAttribute) -> None:
@@ -824,16 +833,16 @@ class Engine:
                 raw[i] = value
                 M[i] = coerce(value)
         for name in changed:
-            i = self._slot_of.get(name)
-            if i is not None:
-                fresh.append(i)
+            slot = self._slot_of.get(name)
+            if slot is not None:
+                fresh.append(slot)
         return fresh
 
     def _collect(self, out: list[int]):
         fired: list[FiredRule] = []
         rejected: list[Rejected] = []
         conflicts: list[ConflictRecord] = []
-        requests: list[tuple[str, str]] = []
+        requests: list[Request] = []
         sources: list[int] = []
         owners: dict[ClaimKey, tuple[str, int, _ActionInfo]] = {}
         requested = self._requested
@@ -926,14 +935,14 @@ class Engine:
 
     def _select(
         self,
-        requests: list[tuple[str, str]],
+        requests: list[Request],
         sources: list[int],
         fired: list[FiredRule],
         rejected: list[Rejected],
     ) -> frozenset[str]:
         """Apply the feature requests; the selection stays valid (else the previous one)."""
         current = self.selection
-        live: list[tuple[str, str]] = []
+        live: list[Request] = []
         live_sources: list[int] = []
         if self.forced:  # newly forced features first: the rules' requests apply on top
             current = overrides.enforce(self.fm, self.deployment, current, self.forced) or current
@@ -970,7 +979,7 @@ class Engine:
         self,
         selection: frozenset[str],
         before: frozenset[str],
-        live: list[tuple[str, str]],
+        live: list[Request],
         sources: list[int],
         fired: list[FiredRule],
         rejected: list[Rejected],
@@ -988,8 +997,8 @@ class Engine:
         return result
 
     def _reduce(
-        self, live: list[tuple[str, str]], sources: list[int], current: frozenset[str]
-    ) -> tuple[list[tuple[str, str]], list[int]]:
+        self, live: list[Request], sources: list[int], current: frozenset[str]
+    ) -> tuple[list[Request], list[int]]:
         """Drop the requests that cannot change the outcome of `apply_requests`.
 
         A request only changes features of its own family (`_families`). Within a family, a
@@ -1121,8 +1130,8 @@ def _free_leaves(fm: FeatureModel) -> dict[str, str]:
 
 
 def _supersedes(
-    request: tuple[str, str],
-    earlier: tuple[str, str],
+    request: Request,
+    earlier: Request,
     leaf_group: dict[str, tuple[int, str]],
     free: dict[str, str],
     active: tuple[frozenset[str], frozenset[str]],

@@ -112,9 +112,7 @@ def parse_rules(
         model = resolver.model(raw)
     except RecursionError:  # pragma: no cover - depth is bounded before anything recurses
         raise DslSyntaxError("rules nested too deeply", Location(file, 1, 1)) from None
-    errors = sorted(
-        builder.errors + resolver.errors, key=lambda e: (e.location.line, e.location.col)
-    )
+    errors = sorted(builder.errors + resolver.errors, key=_source_order)
     ErrorGroup.raise_if_any(errors)
     return model
 
@@ -148,7 +146,7 @@ def _syntax_error(e: UnexpectedInput, text: str, file: str, lines: list[str]) ->
         what = repr(str(e.token))
     elif isinstance(e, UnexpectedCharacters):
         line, col = e.line, e.column
-        what = f"character {text[e.pos_in_stream]!r}"
+        what = f"character {e.char!r}"  # text[e.pos_in_stream], which lark types as None
     else:  # pragma: no cover - the LALR front end raises only the two above
         line, col, what = e.line or 1, e.column or 1, "input"
     expected = sorted({_terminal_text(t) for t in _expected(e)})
@@ -424,6 +422,12 @@ class _Builder(Transformer_NonRecursive):
 def _unquote(token: Token) -> str:
     body = str(token)[1:-1]
     return re.sub(r"\\(.)", lambda m: _ESCAPES.get(m.group(1), m.group(0)), body)
+
+
+def _source_order(e: SemanticError) -> tuple[int, int]:
+    """Where ``e`` is in the file; `_located` places every error, so none sorts first."""
+    loc = e.location
+    return (loc.line, loc.col) if loc is not None else (0, 0)
 
 
 def _located(message: str, span: Span | None, file: str, lines: list[str]) -> SemanticError:

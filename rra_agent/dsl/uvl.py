@@ -21,7 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgspec
 from lark import Lark, Token, Tree, v_args
@@ -44,9 +44,11 @@ from rra_agent.models.features import (
     Aggregate,
     And,
     Arith,
+    ArithOp,
     Attribute,
     Cardinality,
     Compare,
+    CompareOp,
     Constraint,
     ConstraintList,
     Equiv,
@@ -54,6 +56,7 @@ from rra_agent.models.features import (
     Feature,
     FeatureModel,
     Group,
+    GroupKind,
     Implies,
     Import,
     Not,
@@ -122,6 +125,13 @@ class _UvlIndenter(Indenter):
             elif tok.type != self.NL_type:
                 self.last_token = tok
             yield tok
+
+
+def _position(line: int | None, col: int | None) -> tuple[int, int]:
+    """A position lark left Optional; its lexer sets it on every token it makes."""
+    if line is None or col is None:  # pragma: no cover - only hand-made tokens lack one
+        raise ValueError("a UVL token without a position in the text")
+    return line, col
 
 
 def _token_at_end(tok: Token) -> Token:
@@ -261,16 +271,24 @@ def _syntax_error(e: UnexpectedInput, src: _Source) -> DslSyntaxError:
     return src.syntax_error("input", e.line, e.column, expected)  # pragma: no cover
 
 
+def _indenter(parser: Lark) -> _UvlIndenter:
+    """The postlexer `_parser` builds ``parser`` with."""
+    postlex = parser.options.postlex
+    if not isinstance(postlex, _UvlIndenter):  # pragma: no cover - _parser always sets it
+        raise TypeError(f"the UVL parser's postlexer is {postlex!r}, not a _UvlIndenter")
+    return postlex
+
+
 def _indent_error(e: _IndentError, src: _Source) -> DslSyntaxError:
-    tok = e.token
+    line, col = _position(e.token.end_line, e.token.end_column)
     # The Indenter has popped the blocks this line closes; the rest are the dedent targets.
-    columns = [f"{n + 1}" for n in _parser().options.postlex.indent_level]
+    columns = [f"{n + 1}" for n in _indenter(_parser()).indent_level]
     return DslSyntaxError(
-        f"inconsistent dedent to column {tok.end_column}, which matches no enclosing block "
+        f"inconsistent dedent to column {col}, which matches no enclosing block "
         f"(expected column {' or '.join(columns)})",
-        Location(src.file, tok.end_line, tok.end_column),
+        Location(src.file, line, col),
         expected=[f"indentation to column {c}" for c in columns],
-        source_line=_line_of(src.text, tok.end_line),
+        source_line=_line_of(src.text, line),
     )
 
 
@@ -278,13 +296,13 @@ def _parse_tree(text: str, file: str) -> Tree:
     """lark's parse tree of ``text``; every failure becomes a located `DslSyntaxError`."""
     padded = text if text.endswith("\n") else text + "\n"
     parser = _parser()
-    indenter: _UvlIndenter = parser.options.postlex
+    indenter = _indenter(parser)
     with _PARSE_LOCK:
         try:
             return parser.parse(padded)
         except (UnexpectedInput, _IndentError) as e:
             last = indenter.last_token
-            eof = (last.end_line, last.end_column) if last is not None else (1, 1)
+            eof = _position(last.end_line, last.end_column) if last is not None else (1, 1)
             src = _Source(padded, file, eof)
             if isinstance(e, _IndentError):
                 raise _indent_error(e, src) from None
@@ -373,6 +391,22 @@ def _describe(e: Expr) -> str:
     return "a condition"
 
 
+#: The grammar's group keywords and operators, as the model's Literal values.
+_GROUP_KEYWORDS: tuple[GroupKind, ...] = ("mandatory", "optional", "alternative", "or")
+_COMPARE_OPS: tuple[CompareOp, ...] = ("==", "!=", "<", "<=", ">", ">=")
+_ARITH_OPS: tuple[ArithOp, ...] = ("+", "-", "*", "/")
+
+_Word = TypeVar("_Word", bound=str)
+
+
+def _one_of(tok: Token, allowed: tuple[_Word, ...]) -> _Word:
+    """``tok``'s text as the one of the ``allowed`` values it is (the grammar admits no other)."""
+    for value in allowed:
+        if tok == value:
+            return value
+    raise ValueError(f"{tok!r} is none of {allowed}")  # pragma: no cover - grammar guarantees
+
+
 @v_args(meta=True)
 class _ToModel(Transformer_NonRecursive):
     """Parse tree -> model objects. Problems are collected in `errors`, never raised."""
@@ -394,7 +428,7 @@ class _ToModel(Transformer_NonRecursive):
         return Span(self.file, line, col)
 
     def _tok_span(self, tok: Token) -> Span:
-        return self._span(tok.line, tok.column)
+        return self._span(*_position(tok.line, tok.column))
 
     def _int(self, tok: Token) -> int:
         try:
@@ -520,7 +554,7 @@ class _ToModel(Transformer_NonRecursive):
     def group(self, meta: Meta, children: list[Any]) -> Group:
         keyword, members = children
         span = self._tok_span(keyword)
-        return Group(kind=str(keyword), children=members or (), span=span)
+        return Group(kind=_one_of(keyword, _GROUP_KEYWORDS), children=members or (), span=span)
 
     def cardinality_group(self, meta: Meta, children: list[Any]) -> Group:
         (lower, upper), members = children
@@ -617,12 +651,14 @@ class _ToModel(Transformer_NonRecursive):
 
     def comparison(self, meta: Meta, children: list[Any]) -> Expr:
         left, op, right = children
-        compare = Compare(op=str(op), left=self._term(left), right=self._term(right))
+        compare = Compare(
+            op=_one_of(op, _COMPARE_OPS), left=self._term(left), right=self._term(right)
+        )
         return self._located(compare, meta)
 
     def arithmetic(self, meta: Meta, children: list[Any]) -> Expr:
         left, op, right = children
-        arith = Arith(op=str(op), left=self._term(left), right=self._term(right))
+        arith = Arith(op=_one_of(op, _ARITH_OPS), left=self._term(left), right=self._term(right))
         return self._located(arith, meta)
 
     def negative(self, meta: Meta, children: list[Any]) -> Expr:
@@ -892,7 +928,12 @@ class _Checker:
                 and len(set(scale)) == len(scale)
             )
             what = "a list of distinct strings, lowest first"
-            if self.require(a, "scale", what, good_scale) and ok and isinstance(value, str):
+            if (
+                self.require(a, "scale", what, good_scale)
+                and ok
+                and isinstance(value, str)
+                and isinstance(scale, list)  # good_scale says so; for the type checker
+            ):
                 self.require(a, "value", f"one of the scale {scale}", value in scale)
 
     def check_nfr(self, a: Attribute, cvs: set[str]) -> None:
@@ -1133,7 +1174,8 @@ def _parse_uvl(text: str, file: str) -> FeatureModel:
         imports=parsed.imports,
     )
     errors += check_feature_model(fm, to_model.key_spans)
-    ErrorGroup.raise_if_any(sorted(errors, key=_error_order))
+    errors.sort(key=_error_order)
+    ErrorGroup.raise_if_any(errors)
     return fm
 
 
@@ -1313,8 +1355,8 @@ def _format_expr(e: Expr, context: int = 0) -> str:
             | Arith(left=a, right=b)
         ):
             p = _precedence(e)  # left-associative: the right operand must bind tighter
-            op = e.op if isinstance(e, Arith) else _OPERATOR[type(e)]
-            text = f"{_format_expr(a, p)} {op} {_format_expr(b, p + 1)}"
+            sym = e.op if isinstance(e, Arith) else _OPERATOR[type(e)]
+            text = f"{_format_expr(a, p)} {sym} {_format_expr(b, p + 1)}"
         case _:
             raise RraError(f"not a constraint expression: {e!r}")
     return f"({text})" if _precedence(e) < context else text
@@ -1369,8 +1411,10 @@ def _strip_expr(e: Expr) -> Expr:
             return Not(operand=_strip_expr(o))
         case And() | Or() | Implies() | Equiv():
             return type(e)(left=_strip_expr(e.left), right=_strip_expr(e.right))
-        case Compare() | Arith():
-            return type(e)(op=e.op, left=_strip_expr(e.left), right=_strip_expr(e.right))
+        case Compare():
+            return Compare(op=e.op, left=_strip_expr(e.left), right=_strip_expr(e.right))
+        case Arith():
+            return Arith(op=e.op, left=_strip_expr(e.left), right=_strip_expr(e.right))
     raise RraError(f"not a constraint expression: {e!r}")
 
 

@@ -530,7 +530,11 @@ class Executor:
         done = [c for c, rep in zip(batch, replies, strict=True) if not isinstance(rep, m.Err)]
         inverses = [Ctl(c.after or c.spec, c.inverse, c.spec) for c in reversed(done) if c.inverse]
         if inverses:
-            tx.undo.append((f"undo {action}", lambda: self._ok(inverses)))
+
+            def undo() -> None:  # the replies' results are of no use to a rollback
+                self._ok(inverses)
+
+            tx.undo.append((f"undo {action}", undo))
         for c in done:
             if c.after is not None:
                 table = self.running if c.spec.name in self.running else self.standby

@@ -53,9 +53,9 @@ from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
 from rra_agent.host import scheduling
 from rra_agent.host.catalog import Catalog, Refused, check_name
-from rra_agent.host.members import Members
+from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
-from rra_agent.host.supervisor import LIVE, Notice, State, StopPolicy, Supervisor, Transition
+from rra_agent.host.supervisor import LIVE, Notice, Proc, State, StopPolicy, Supervisor, Transition
 from rra_agent.models.system import Scheduling
 
 TICK = 0.02
@@ -161,8 +161,8 @@ class HostAgent:
             stamp=time.time(),
             node=t.node,
             host=t.host,
-            state=t.state.value,  # type: ignore[arg-type]
-            previous=t.previous.value,  # type: ignore[arg-type]
+            state=t.state.wire,
+            previous=t.previous.wire,
             pid=t.pid,
             implementation=m.implementation_id(p.spec) if p else "",
             active=p.spec.active if p else True,
@@ -479,19 +479,23 @@ class HostAgent:
 
     def node_states(self) -> list[m.NodeState]:
         now = time.time()
+        records: list[tuple[str, Proc | Member]] = [
+            *self.supervisor.procs.items(),
+            *self.members.members.items(),
+        ]
         return [
             m.NodeState(
                 stamp=now,
                 node=name,
                 host=self.host,
-                state=p.state.value,  # type: ignore[arg-type]
+                state=p.state.wire,
                 pid=p.pid,
                 implementation=m.implementation_id(p.spec),
                 active=p.spec.active,
                 restarts=p.restarts,
                 digest=m.spec_digest(p.spec),
             )
-            for name, p in [*self.supervisor.procs.items(), *self.members.members.items()]
+            for name, p in records
         ]
 
     def identity(self) -> dict[str, Any]:

@@ -101,7 +101,7 @@ class Catalog:
         implementations and parameters), made here, never taken from the bus."""
         members = [c for c in self.components.values() if c.container == container]
         scheduling = next((c.scheduling for c in members if not c.scheduling.is_default), None)
-        return m.NodeSpec(
+        spec = m.NodeSpec(
             system=self.system,
             name=container,
             host=self.host,
@@ -119,8 +119,10 @@ class Catalog:
                 }
             },
             path=list(self.path),
-            **({"scheduling": scheduling} if scheduling is not None else {}),
         )
+        if scheduling is not None:  # else NodeSpec's own default instance, which encoding omits
+            spec.scheduling = scheduling
+        return spec
 
     @property
     def implementations(self) -> frozenset[str]:

@@ -36,9 +36,9 @@ import signal
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Protocol
+from typing import Protocol, cast
 
-from rra_agent.bus.messages import NodeSpec
+from rra_agent.bus.messages import NodeSpec, NodeStateName
 from rra_agent.host.heartbeat import Beat
 from rra_agent.models.system import Supervision
 
@@ -58,6 +58,11 @@ class State(StrEnum):
     STOPPING = "STOPPING"
     EXITED = "EXITED"
     FATAL = "FATAL"
+
+    @property
+    def wire(self) -> NodeStateName:
+        """The state as a `NodeState` names it: its value (the states are NodeStateName's)."""
+        return cast(NodeStateName, self.value)
 
 
 #: States in which the node's process exists.

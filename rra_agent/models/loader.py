@@ -104,6 +104,8 @@ def load_package(path: str | Path, *, validate: bool = True) -> SystemPackage:
             errors, lambda: _load_adaptation(root, manifest, mdoc, features, models)
         )
     ErrorGroup.raise_if_any(errors)
+    # No features means a missing or broken features file, whose error(s) were just raised.
+    assert features is not None
     pkg = SystemPackage(
         root=root,
         manifest=manifest,

@@ -333,8 +333,8 @@ def _find_bad_key(node: Node, tp: Any) -> Node:
     key_tp, _ = _dict_types(tp)
     if isinstance(node, MappingNode):
         for k, _v in _entries(node):
-            try:
-                msgspec.convert(_construct_scalar(k), key_tp)
+            try:  # keys may be any node: a non-scalar one fails as the value it builds
+                msgspec.convert(_CONSTRUCTOR.construct_object(k, deep=True), key_tp)
             except (msgspec.ValidationError, yaml.YAMLError, AttributeError):
                 return k
     return node

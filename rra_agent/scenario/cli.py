@@ -63,11 +63,11 @@ def slug(text: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from rra_agent.models.loader import flatten_errors
-    from rra_agent.scenario.model import load_scenario
+    from rra_agent.scenario.model import ScenarioCase, load_scenario
     from rra_agent.scenario.runner import describe_failure, render_rows, run_case
 
     status = 0
-    cases = []
+    cases: list[ScenarioCase] = []
     for path in find_scenarios(args.paths):
         try:
             cases += load_scenario(path).cases

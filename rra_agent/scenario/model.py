@@ -338,7 +338,9 @@ class _Loader:
         timeline = self.timeline(c, at, duration)
         names = {t.step.name for t in timeline if t.step.name}
         expectations: list[x.Expectation] = []
-        texts = [(text, ("expect", i)) for i, text in enumerate(sc.expect)]
+        texts: list[tuple[str, tuple[PathItem, ...]]] = [
+            (text, ("expect", i)) for i, text in enumerate(sc.expect)
+        ]
         if c is not None:
             texts += [(text, (*at, "expect", i)) for i, text in enumerate(c.expect)]
         for text, where in texts:
@@ -392,7 +394,9 @@ class _Loader:
     def timeline(
         self, c: Case | None, at: tuple[PathItem, ...], duration: float
     ) -> list[TimedStep]:
-        entries = [(s, ("timeline", i)) for i, s in enumerate(self.scenario.timeline)]
+        entries: list[tuple[Step, tuple[PathItem, ...]]] = [
+            (s, ("timeline", i)) for i, s in enumerate(self.scenario.timeline)
+        ]
         if c is not None:
             entries += [(s, (*at, "timeline", i)) for i, s in enumerate(c.timeline)]
         out: list[TimedStep] = []
@@ -645,8 +649,8 @@ def _bind_events(
     """Feature names inside ``select(F)``/``deselect(F)`` patterns -> canonical names, and
     ``conflict(T)`` targets -> the names conflict reports carry (``conflicts``)."""
 
-    def fix(ev: x.EventPattern | None) -> x.EventPattern | None:
-        if ev is None or not ev.args:
+    def fix(ev: x.EventPattern) -> x.EventPattern:
+        if not ev.args:
             return ev
         if ev.kind == "conflict" and conflicts:
             return x.EventPattern(ev.kind, (conflicts.get(ev.args[0], ev.args[0]),))
@@ -655,12 +659,13 @@ def _bind_events(
         name = fm.resolve_name(ev.args[0]) or ev.args[0]
         return x.EventPattern(ev.kind, (name,))
 
-    def fix_ref(ref: x.TimeRef | None) -> x.TimeRef | None:
-        if ref is None or ref.event is None:
+    def fix_ref(ref: x.TimeRef) -> x.TimeRef:
+        if ref.event is None:
             return ref
         return dataclasses.replace(ref, event=fix(ref.event))
 
-    when = x.When(exp.when.mode, fix_ref(exp.when.start), fix_ref(exp.when.stop))  # type: ignore[arg-type]
+    stop = exp.when.stop
+    when = x.When(exp.when.mode, fix_ref(exp.when.start), None if stop is None else fix_ref(stop))
     if isinstance(exp, x.EventExpectation):
         return dataclasses.replace(exp, when=when, event=fix(exp.event))
     return dataclasses.replace(exp, when=when)

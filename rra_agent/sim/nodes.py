@@ -66,11 +66,11 @@ class VehicleSimulator(Node):
     def __init__(self, ctx: NodeContext) -> None:
         # Set up here, not in on_start: samples may be delivered before on_start runs.
         super().__init__(ctx)
-        pos = self.ctx.param("initial_position", [0.0, 0.0, 1.5])
+        x, y, z = (float(v) for v in self.ctx.param("initial_position", [0.0, 0.0, 1.5]))
         self.quad = Quadcopter(
             QuadParams(),
             timestep=float(self.ctx.param("timestep", 0.002)),
-            position=tuple(float(v) for v in pos),
+            position=(x, y, z),
             seed=int(self.ctx.param("noise_seed", 0)),
         )
         self.armed = False

@@ -641,7 +641,8 @@ class Logger:
     ) -> None:
         """The body pose (``/world/vehicle``); also extends ``/world/trajectory``."""
         rr = self.rr
-        pos = tuple(float(x) for x in position)
+        x, y, z = position
+        pos = (float(x), float(y), float(z))
         self._log(
             "/world/vehicle",
             rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quaternion_xyzw)),

@@ -1,4 +1,4 @@
-"""Recovery benchmark: fault -> first Proploss command applied, and altitude lost, per strategy.
+"""Recovery benchmark: fault -> first Proploss command, and altitude lost, per strategy.
 
 Runs the quadcopter motor-failure scenario (hover at 2 m, motor 2 breaks) N times for each
 of: ``standby`` (the Proploss controller pre-started inactive: switch = activation + rewire),
@@ -11,20 +11,23 @@ real system under ``rra up``. The latency and the crash come from the simulator'
 marks (fault, first physics step driven by a Proploss command, crash); the altitude lost from
 the recording (`rra_agent.demo`).
 
-Each strategy runs twice: as scenarios/quadcopter is (no scheduling) and with its critical
-path on real time (``fifo``: a copy with ``scheduling: {policy: fifo, priority: 50}`` on the
-simulator, estimator and both controllers, and ``engines``/``agents`` in rra.yaml).
-``--load`` runs a busy loop on every core (``tools/cpuhog.py``) during all runs. Where the
-kernel refuses real-time scheduling, the runs say so and the "fifo" rows are the same as
-the others.
+Each strategy runs once per scheduling variant of its critical path (the simulator,
+estimator and both controllers in system.yaml, ``engines`` and ``agents`` in rra.yaml), in a
+copy of scenarios/quadcopter: ``fifo`` (SCHED_FIFO 50), ``nice`` (nice -10: more weight for
+the normal scheduler, no real-time budget to exhaust) and ``none`` (no scheduling anywhere);
+``--scheduling`` picks them (default fifo and none). ``--load`` runs a busy loop on every
+core (``tools/cpuhog.py``) during all runs. Where the kernel refuses a scheduling, the runs
+say so and its rows are the same as the others.
 
-Prints median and p99 per strategy beside the goals, then where the time goes: the phases
-of one adaptation, from a cross-process trace (`rra_agent.trace`, ``RRA_TRACE``): fault ->
-Context Monitor's measurement -> Adaptation Engine's selection -> Run-time Resolution
-Engine's plan -> (cold: stop the old node, fork, session open, declarations, ready seen) ->
-connect (rewire + state export) -> activation -> the simulator's first Proploss command
-received -> first physics step driven by it. Writes a PNG of altitude over time around the
-failure (needs matplotlib: ``pip install -e '.[bench]'``).
+Prints median and p99 per strategy beside the goals, for the first Proploss command received
+by the simulator (the switch done) and for the first physics step it drives (the simulator
+applies a command at its next 2 ms step, which quantizes that figure), then where the time
+goes: the phases of one adaptation, from a cross-process trace (`rra_agent.trace`,
+``RRA_TRACE``): fault -> Context Monitor's measurement -> Adaptation Engine's selection ->
+Run-time Resolution Engine's plan -> (cold: stop the old node, fork, session open,
+declarations, ready seen) -> connect (rewire + state export) -> activation -> the
+simulator's first Proploss command received -> first physics step driven by it. Writes a
+PNG of altitude over time around the failure (needs matplotlib: ``pip install -e '.[bench]'``).
 
     .venv/bin/python tools/bench_recovery.py [--runs 20] [--load] [--plot recovery.png]
 """
@@ -106,21 +109,31 @@ PHASES = {
 }
 
 
-#: The real-time variant: the processes on the fault's critical path.
-REALTIME = {"policy": "fifo", "priority": 50}
+#: Scheduling variants of the critical path (the nodes below, the engines, the host agents):
+#: ``fifo`` real time, ``nice`` a higher weight for the normal scheduler, ``none`` nothing.
+VARIANTS: dict[str, dict | None] = {
+    "fifo": {"policy": "fifo", "priority": 50},
+    "nice": {"nice": -10},
+    "none": None,
+}
 CRITICAL = ("estimator", "controller", "proploss_controller", "vehicle_simulator")
 
 
-def realtime(package: Path, into: Path) -> Path:
-    """A copy of ``package`` with its critical path (nodes, engines, agents) on SCHED_FIFO."""
+def scheduled(package: Path, into: Path, scheduling: dict | None) -> Path:
+    """A copy of ``package`` with its critical path (nodes, engines, agents) scheduled with
+    ``scheduling``, and nothing else scheduled (``None``: no scheduling anywhere)."""
     shutil.copytree(package, into)
     system = yaml.safe_load((into / "system.yaml").read_text())
     for c in system.get("components", []):
-        if c["name"] in CRITICAL:
-            c["scheduling"] = dict(REALTIME)
+        c.pop("scheduling", None)
+        if scheduling is not None and c["name"] in CRITICAL:
+            c["scheduling"] = dict(scheduling)
     (into / "system.yaml").write_text(yaml.safe_dump(system, sort_keys=False))
     manifest = yaml.safe_load((into / "rra.yaml").read_text())
-    manifest["engines"] = manifest["agents"] = {"scheduling": dict(REALTIME)}
+    for key in ("engines", "agents"):
+        manifest.pop(key, None)
+        if scheduling is not None:
+            manifest[key] = {"scheduling": dict(scheduling)}
     (into / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     return into
 
@@ -151,29 +164,46 @@ def phases(path: Path, strategy: str) -> dict[str, float]:
     return out
 
 
-def from_trace(path: Path) -> tuple[float | None, bool]:
-    """Fault -> first physics step driven by a Proploss command (seconds), and whether the
-    vehicle crashed, as the simulator itself marked them (``sim:fault``,
-    ``sim:commanded_by``, ``sim:crash``). The simulator's own marks, not the scenario's
-    recording: under load a normal-priority recorder beside real-time processes can fall
-    behind the window, and its samples' arrival says nothing of the switch."""
-    if not path.exists():
-        return None, False
-    lines = trace.read(path)
-    t_fault = next((float(x["t"]) for x in lines if x["what"] == "sim:fault"), None)
-    if t_fault is None:
-        return None, False
-    after = [x for x in lines if float(x["t"]) >= t_fault]
-    first = next(
+class Marks(msgspec.Struct):
+    """What the simulator marked after the fault (seconds after it)."""
+
+    #: its first Proploss command received (the switch done, not yet applied)
+    received: float | None = None
+    #: the first physics step driven by a Proploss command (the 2 ms step quantizes it)
+    applied: float | None = None
+    crashed: bool = False
+
+
+def _first_proploss(after: list[dict], what: str, t_fault: float) -> float | None:
+    return next(
         (
-            float(x["t"])
+            float(x["t"]) - t_fault
             for x in after
-            if x["what"] == "sim:commanded_by" and "proploss" in str(x["node"])
+            if x["what"] == what and "proploss" in str(x["node"])
         ),
         None,
     )
-    crashed = any(x["what"] == "sim:crash" for x in after)
-    return (None if first is None else first - t_fault), crashed
+
+
+def from_trace(path: Path) -> Marks:
+    """Fault -> first Proploss command received by the simulator and first physics step
+    driven by one, and whether the vehicle crashed, as the simulator itself marked them
+    (``sim:fault``, ``sim:command_from``, ``sim:commanded_by``, ``sim:crash``). The
+    simulator's own marks, not the scenario's recording: under load a normal-priority
+    recorder beside real-time processes can fall behind the window, and its samples'
+    arrival says nothing of the switch."""
+    if not path.exists():
+        return Marks()
+    lines = trace.read(path)
+    t_fault = next((float(x["t"]) for x in lines if x["what"] == "sim:fault"), None)
+    if t_fault is None:
+        return Marks()
+    after = [x for x in lines if float(x["t"]) >= t_fault]
+    return Marks(
+        received=_first_proploss(after, "sim:command_from", t_fault),
+        applied=_first_proploss(after, "sim:commanded_by", t_fault),
+        crashed=any(x["what"] == "sim:crash" for x in after),
+    )
 
 
 def make_case(strategy: str, package: Path | None = None):
@@ -226,13 +256,14 @@ def one_run(case, delay: float, run_dir: Path):
     if result.recording is None:
         raise RunFailed(str(result.error))
     report = recovery_report(result.recording, setpoint=2.0)
-    latency, crashed = from_trace(trace_file)
-    if latency is not None:
-        report.first_proploss_command = latency
-    if crashed:
+    marks = from_trace(trace_file)
+    if marks.applied is not None:
+        report.first_proploss_command = marks.applied
+    if marks.crashed:
         report.airborne = False
     strategy = case.replacement.components.get("proploss_controller", "")
-    return report, result.recording, phases(trace_file, strategy) if trace_file.exists() else {}
+    ph = phases(trace_file, strategy) if trace_file.exists() else {}
+    return report, result.recording, ph, marks.received
 
 
 def altitude_trace(rec, report) -> tuple[list[float], list[float]]:
@@ -286,9 +317,10 @@ def main() -> int:
     ap.add_argument("--load", action="store_true", help="a busy loop on every core meanwhile")
     ap.add_argument(
         "--scheduling",
-        choices=["both", "fifo", "none"],
-        default="both",
-        help="the critical path on SCHED_FIFO 50, as the package is, or both (default)",
+        choices=list(VARIANTS),
+        action="append",
+        help="scheduling of the critical path: fifo (SCHED_FIFO 50), nice (-10), none "
+        "(repeatable; default: fifo and none)",
     )
     ap.add_argument(
         "--keep",
@@ -304,9 +336,8 @@ def main() -> int:
     rows, traces, breakdown = [], {}, {}
     try:
         with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
-            fifo = realtime(SCENARIO.parent, Path(tmp) / "realtime")
-            variants = {"fifo": fifo, "none": None}
-            chosen = ["fifo", "none"] if args.scheduling == "both" else [args.scheduling]
+            chosen = args.scheduling or ["fifo", "none"]
+            variants = {v: scheduled(SCENARIO.parent, Path(tmp) / v, VARIANTS[v]) for v in chosen}
             for name in args.only or list(STRATEGIES):
                 for variant in chosen:
                     row, tr, ph = run_strategy(name, variants[variant], variant, args, Path(tmp))
@@ -319,10 +350,17 @@ def main() -> int:
             hog.wait()
     print()
     load = "under a busy loop on every core" if args.load else "quiet machine"
-    print(f"fault -> first Proploss command applied by the simulator ({load})")
-    print("scheduling: fifo = critical path on SCHED_FIFO 50, none = scenarios/quadcopter as is")
+    print(
+        f"fault -> first Proploss command received by the simulator / applied at its next "
+        f"2 ms physics step ({load})"
+    )
+    print(
+        "scheduling of the critical path: "
+        + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in args.scheduling or ["fifo", "none"])
+    )
     print_table(
-        ["strategy", "scheduling", "runs", "median ms", "p99 ms", "goal ms (median / p99)",
+        ["strategy", "scheduling", "runs", "received ms (median / p99)",
+         "applied ms (median / p99)", "goal ms (median / p99)",
          "alt. lost median m", "alt. lost p99 m", "airborne"],
         rows,
         digits=3,
@@ -336,13 +374,13 @@ def main() -> int:
 def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path):
     strategy, delay = STRATEGIES[name]
     case = make_case(strategy, package)
-    latencies, losses, survived, per_phase = [], [], 0, {}
+    latencies, received, losses, survived, per_phase = [], [], [], 0, {}
     trace_xy = None
     kept = Path(args.keep) if args.keep else None
     for i in range(args.runs):
         run_dir = tmp / f"{name}-{variant}-{i}"
         try:
-            report, rec, ph = one_run(case, delay, run_dir)
+            report, rec, ph, got = one_run(case, delay, run_dir)
         except RunFailed as e:
             print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: FAILED: {e}", flush=True)
             keep(run_dir, kept, f"failed: {e}")
@@ -351,6 +389,8 @@ def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path)
             keep(run_dir, kept, "crashed" if not report.airborne else "no Proploss command")
         if report.first_proploss_command is not None:
             latencies.append(report.first_proploss_command)
+        if got is not None:
+            received.append(got)
         if report.altitude_lost is not None:
             losses.append(report.altitude_lost)
         survived += report.airborne
@@ -358,7 +398,8 @@ def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path)
             per_phase.setdefault(k, []).append(v)
         if i == 0:
             trace_xy = altitude_trace(rec, report)
-        print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: latency "
+        print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: received "
+              f"{(got or float('nan')) * 1e3:6.1f} ms, applied "
               f"{(report.first_proploss_command or float('nan')) * 1e3:6.1f} ms, "
               f"altitude lost {report.altitude_lost or float('nan'):.3f} m, "
               f"{'airborne' if report.airborne else 'CRASHED'}", flush=True)  # fmt: skip
@@ -366,14 +407,19 @@ def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path)
         name,
         variant,
         len(latencies),
-        median(latencies) * 1e3 if latencies else float("nan"),
-        p99(latencies) * 1e3 if latencies else float("nan"),
+        _ms(received),
+        _ms(latencies),
         _goal(strategy if delay == 0 else "", args.load),
         median(losses) if losses else float("nan"),
         p99(losses) if losses else float("nan"),
         f"{survived}/{args.runs}",
     ]
     return row, trace_xy, per_phase
+
+
+def _ms(xs: list[float]) -> str:
+    """``median / p99`` in ms."""
+    return f"{median(xs) * 1e3:.1f} / {p99(xs) * 1e3:.1f}" if xs else "-"
 
 
 def print_phases(breakdown: dict[str, dict[str, list[float]]]) -> None:

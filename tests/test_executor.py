@@ -28,6 +28,7 @@ class FakeActuator:
         self.batches: list[int] = []
         self.fail_on: set[tuple[str, str]] = set()
         self.states: dict[str, Any] = {"controller": {"integral": 1.5}}
+        self.deadlines: dict[str, float] = {}
 
     def _do(self, op: str, name: str, *rest: Any) -> None:
         self.calls.append((op, name, *rest))
@@ -38,9 +39,11 @@ class FakeActuator:
         for s in specs:
             self._do("start", s.name, s.active, s.state)
 
-    def stop(self, specs: list[NodeSpec]) -> None:
+    def stop(self, specs: list[NodeSpec], deadlines: dict[str, float] | None = None) -> None:
         for s in specs:
             self._do("stop", s.name)
+            if deadlines and s.name in deadlines:
+                self.deadlines[s.name] = deadlines[s.name]
 
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         self.batches.append(len(batch))
@@ -88,7 +91,9 @@ def quad():
     return configured, target
 
 
-def make(strategy: str, transfer: bool = True) -> tuple[Executor, FakeActuator]:
+def make(
+    strategy: str, transfer: bool = True, deadlines: dict[str, float] | None = None
+) -> tuple[Executor, FakeActuator]:
     act = FakeActuator()
     rep = Replacement(
         default="stop-then-start",
@@ -96,6 +101,7 @@ def make(strategy: str, transfer: bool = True) -> tuple[Executor, FakeActuator]:
         state_transfer=[StateTransfer(source="controller", target="proploss_controller")]
         if transfer
         else [],
+        stop_deadline=deadlines or {},
     )
     return Executor(act, K, rep, default_host="local"), act
 
@@ -136,13 +142,29 @@ def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
     out = ex.execute(swap_plan(target))
     assert out.ok, out.error
     assert act.calls == [
+        # one batch: the simulator listens to the new controller before it starts (no
+        # command is lost), and the old one's state is exported, before it stops
+        ("rewire", "vehicle_simulator", "motor_cmd", (K.data("proploss_controller/motor_cmd"),)),
         ("export", "controller"),
         ("stop", "controller"),
-        # the simulator listens to the new controller before it starts: no command is lost
-        ("rewire", "vehicle_simulator", "motor_cmd", (K.data("proploss_controller/motor_cmd"),)),
         ("start", "proploss_controller", True, {"integral": 1.5}),
     ]
+    assert act.batches == [2]  # the export cost no round trip of its own
     assert "controller" not in ex.running and "proploss_controller" in ex.running
+
+
+def test_a_stop_then_start_swap_stops_the_old_node_with_its_deadline(quad):
+    """runtime.yaml ``stop_deadline: {controller: 0}``: the cold swap's stop of the old
+    controller carries it (its host agent kills it at once); other stops do not."""
+    _, target = quad
+    ex, act = make("stop-then-start", deadlines={"controller": 0.0, "estimator": 0.5})
+    deploy(ex, act, target("Standard"))
+    assert ex.execute(swap_plan(target)).ok
+    assert act.deadlines == {"controller": 0.0}
+    ex, act = make("start-then-stop", deadlines={"controller": 0.0})
+    deploy(ex, act, target("Standard"))
+    assert ex.execute(swap_plan(target)).ok  # after the switch: off the critical path
+    assert ("stop", "controller") in act.calls and act.deadlines == {}
 
 
 def test_start_then_stop_makes_before_break(quad):
@@ -190,7 +212,11 @@ def test_failed_start_rolls_back_to_the_previous_configuration(quad):
     act.fail_on = {("start", "proploss_controller")}
     out = ex.execute(swap_plan(target))
     assert not out.ok and out.rolled_back and "proploss_controller" in out.error
-    assert act.calls[-1] == ("start", "controller", True, None)  # the old one is back
+    # undone in reverse order: the old one is back, then the simulator listens to it again
+    assert act.calls[-2:] == [
+        ("start", "controller", True, None),
+        ("rewire", "vehicle_simulator", "motor_cmd", (K.data("controller/motor_cmd"),)),
+    ]
     assert ex.running == before
     assert any(not rec.ok for rec in out.records)
 

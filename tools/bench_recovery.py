@@ -97,9 +97,8 @@ PHASES = {
     ],
     "stop-then-start": [
         *_ENGINES,
-        ("export state of the old node", "engine:replied"),
+        ("connect (rewire, export state)", "engine:replied"),
         ("stop the old node", "engine:stopped"),
-        ("connect (rewire)", "engine:replied"),
         ("start requested -> a spare has it", "node:request"),
         ("request -> session open", "node:session"),
         ("declarations, on_start, token", "node:token"),

@@ -12,18 +12,18 @@ about one round trip (or one process start), not one per node:
 
 1. **start** the new components;
 2. **prepare** the swaps, per the replacement strategy of the component swapped in:
-   ``stop-then-start`` exports the old node's state and stops it; ``start-then-stop`` (make
-   before break) starts the new one inactive; ``standby`` finds it already running inactive
-   (pre-started at deployment; if it is not, make before break); restarts
-   (`SetImplementation`) stop and start again (a name is a node's identity on the bus, so
-   old and new cannot overlap);
+   ``start-then-stop`` (make before break) starts the new one inactive; ``standby`` finds
+   it already running inactive (pre-started at deployment; if it is not, make before
+   break); restarts (`SetImplementation`) stop and start again (a name is a node's identity
+   on the bus, so old and new cannot overlap);
 3. **connect**, one batch: rewire subscribers (of swapped peers, of standby nodes' own
-   inputs, and the plan's `Rewire` steps) and export the state of the old nodes of warm
-   swaps. Every subscriber listens to the new producers *before* they produce: a
+   inputs, and the plan's `Rewire` steps) and export the state of the old nodes of every
+   swap. Every subscriber listens to the new producers *before* they produce: a
    replacement publishes its first command the moment it is activated (or, cold, as soon
    as it runs), and a sample published before its subscriber is declared is lost (one
    producer period late; measured 3-5 ms of a 10 ms standby switch);
-4. the cold replacements **start** (active, with the exported state in their spec);
+4. ``stop-then-start``: the old nodes **stop**, then their replacements **start** (active,
+   with the exported state in their spec);
 5. **switch**, one batch: activate the new nodes (with the exported state), deactivate the
    old ones (unless they are stopped next and publish on other keys than their
    replacements: then the connect batch already cut them off), set parameters;
@@ -35,7 +35,7 @@ about one round trip (or one process start), not one per node:
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -62,8 +62,10 @@ class Actuator(Protocol):
         stopping those of them that did start)."""
         ...
 
-    def stop(self, nodes: list[NodeSpec]) -> None:
-        """Stop the nodes and return once all are gone; raise StepFailed otherwise."""
+    def stop(self, nodes: list[NodeSpec], deadlines: Mapping[str, float] | None = None) -> None:
+        """Stop the nodes and return once all are gone; raise StepFailed otherwise.
+        ``deadlines``: seconds by node name after which its host agent kills it (0: at
+        once) instead of its grace periods."""
         ...
 
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
@@ -323,15 +325,21 @@ class Executor:
             self._start(tx, starts)
         swaps = [self._plan_swap(s) for s in steps if isinstance(s, r.SwapComponent)]
         restarts = [s for s in steps if isinstance(s, r.SetImplementation)]
-        cold = self._prepare(tx, swaps, restarts)
+        self._prepare(tx, swaps, restarts)
+        cold = [w for w in swaps if w.strategy == "stop-then-start"]
         warm = [w for w in swaps if w.strategy != "stop-then-start"]
-        states = self._connect(tx, warm, steps)
+        states, cold_states = self._connect(tx, warm, cold, steps)
         hot = [w.new.name for w in warm if self.replacement.hot(w.new.name)]
         if hot:  # the consumers' rewire was the switch: say so in the plan
             self._switched = self.clock()
             tx.records.append(StepRecord("select", ",".join(hot), 0.0, True))
         if cold:
-            self._start(tx, cold)
+            self._stop(tx, [w.old for w in cold], self.replacement.stop_deadline)
+            news = [
+                msgspec.structs.replace(w.new, state=st)
+                for w, st in zip(cold, cold_states, strict=True)
+            ]
+            self._start(tx, news)
             self._switched = self.clock()
         self._switch(tx, warm, steps, states)
         retire = [w for w in warm if not self.replacement.pre_started(w.old.name)]
@@ -368,17 +376,9 @@ class Executor:
             new = self._spec(s, active=strategy == "stop-then-start")
         return _Swap(s, self.running[s.component], new, strategy)
 
-    def _prepare(self, tx: Transaction, swaps: list[_Swap], restarts) -> list[NodeSpec]:
-        """Everything before the connect batch; the cold replacements to start after it
-        (their specs carrying the exported state)."""
-        cold = [w for w in swaps if w.strategy == "stop-then-start"]
-        news: list[NodeSpec] = []
-        if cold:
-            states = self._export(tx, cold)
-            self._stop(tx, [w.old for w in cold])
-            news = [
-                msgspec.structs.replace(w.new, state=st) for w, st in zip(cold, states, strict=True)
-            ]
+    def _prepare(self, tx: Transaction, swaps: list[_Swap], restarts) -> None:
+        """Everything before the connect batch: make-before-break replacements started
+        (inactive), pre-started ones taken from the standby table, restarts done."""
         mbb = [w.new for w in swaps if w.strategy == "start-then-stop"]
         if mbb:
             self._start(tx, mbb)
@@ -388,19 +388,6 @@ class Executor:
         if restarts:
             self._stop(tx, [self.running[s.component] for s in restarts])
             self._start(tx, [self._spec(s) for s in restarts])
-        return news
-
-    def _export(self, tx: Transaction, swaps: list[_Swap]) -> list[Any]:
-        """Exported state of each old node whose replacement wants it (None otherwise)."""
-        wanted = [w for w in swaps if self._wants_state(w)]
-        states: dict[str, Any] = {}
-        if wanted:
-            batch = [Ctl(w.old, m.ExportState()) for w in wanted]
-            replies = tx.run(
-                "export_state", _names([w.old for w in wanted]), lambda: self._ok(batch), None
-            )
-            states = {w.new.name: rep for w, rep in zip(wanted, replies, strict=True)}
-        return [states.get(w.new.name) for w in swaps]
 
     def _wants_state(self, w: _Swap) -> bool:
         return any(
@@ -408,9 +395,14 @@ class Executor:
             for t in self.replacement.state_transfer
         )
 
-    def _connect(self, tx: Transaction, warm: list[_Swap], steps) -> list[Any]:
-        """Rewire every subscriber to its new producers and export the warm swaps' state,
-        in one batch; the exported state of each warm swap (None: not wanted)."""
+    def _connect(
+        self, tx: Transaction, warm: list[_Swap], cold: list[_Swap], steps
+    ) -> tuple[list[Any], list[Any]]:
+        """Rewire every subscriber to its new producers and export the state of the old
+        nodes of all swaps, in one batch; the exported state of each warm and each cold
+        swap (None: not wanted). A cold swap's old node is stopped after this batch, so its
+        export costs no round trip of its own, and its consumers, rewired here, hear nothing
+        more from it while it stops."""
         batch: list[Ctl] = []
         for w in warm:
             new = self.running[w.new.name]
@@ -422,16 +414,16 @@ class Executor:
                 spec = self.running[s.component]
                 batch += self._rewires(spec, {s.port: [self.keys.data(t) for t in s.topics]})
         batch = self._merge(batch)
-        wanted = [w for w in warm if self._wants_state(w)]
+        wanted = [w for w in [*warm, *cold] if self._wants_state(w)]
         exports = [Ctl(w.old, m.ExportState()) for w in wanted]
         if not batch and not exports:
-            return [None] * len(warm)
+            return [None] * len(warm), [None] * len(cold)
         replies = self._control(tx, "connect", batch + exports)
         states = {
             w.new.name: rep.result  # type: ignore[union-attr]
             for w, rep in zip(wanted, replies[len(batch) :], strict=True)
         }
-        return [states.get(w.new.name) for w in warm]
+        return [states.get(w.new.name) for w in warm], [states.get(w.new.name) for w in cold]
 
     def _switch(self, tx: Transaction, warm: list[_Swap], steps, states: list[Any]) -> None:
         batch: list[Ctl] = []
@@ -514,11 +506,20 @@ class Executor:
         for s in specs:
             self.running[s.name] = s
 
-    def _stop(self, tx: Transaction, specs: list[NodeSpec]) -> None:
+    def _stop(
+        self, tx: Transaction, specs: list[NodeSpec], deadlines: Mapping[str, float] | None = None
+    ) -> None:
         def undo() -> None:
             self.actuator.start(specs)
 
-        tx.run("stop", _names(specs), lambda: self.actuator.stop(specs), undo)
+        def do() -> None:
+            if deadlines and any(s.name in deadlines for s in specs):
+                self.actuator.stop(specs, {s.name: deadlines[s.name] for s in specs
+                                           if s.name in deadlines})  # fmt: skip
+            else:
+                self.actuator.stop(specs)
+
+        tx.run("stop", _names(specs), do, undo)
         for s in specs:
             self.running.pop(s.name, None)
 

@@ -128,6 +128,34 @@ def test_start_run_data_and_stop(agent, procs):
     assert [n["state"] for n in listed] == ["STOPPED"]  # type: ignore[union-attr]
 
 
+def test_a_stop_with_deadline_0_kills_at_once_and_is_a_stop(agent, procs):
+    """``StopNode(deadline=0)`` (a stop-then-start swap whose runtime.yaml gives the old
+    node no grace period): SIGKILL at once, reported STOPPED, never restarted."""
+    _, client, watch = agent
+    first = start(client, watch, procs)
+    n = len(watch.states)
+    ok(client.host("h1", m.StopNode(node="relay", deadline=0.0)))
+    stopped = wait_until(lambda: watch.state("relay", "STOPPED", n), 10, "relay STOPPED")
+    assert stopped.pid == first.pid and "status -9" in stopped.reason
+    assert not pid_alive(first.pid)
+    assert not any(s.state in ("BACKOFF", "STARTING") for s in watch.states[n:])
+
+
+def test_a_stop_deadline_cuts_the_grace_period_of_a_node_that_does_not_stop(agent, procs):
+    """A node that cannot handle SIGINT (stopped by SIGSTOP) is killed when the stop's
+    deadline (0.2 s) passes, not after the host agent's grace periods (SIGINT 2 s, SIGTERM
+    2 s)."""
+    _, client, watch = agent
+    first = start(client, watch, procs)
+    os.kill(first.pid, signal.SIGSTOP)
+    n = len(watch.states)
+    t0 = time.monotonic()
+    ok(client.host("h1", m.StopNode(node="relay", deadline=0.2)))
+    stopped = wait_until(lambda: watch.state("relay", "STOPPED", n), 10, "relay STOPPED")
+    assert "status -9" in stopped.reason
+    assert time.monotonic() - t0 < 2.0, "killed only after the SIGINT grace period"
+
+
 def test_kill9_is_known_from_the_os_within_20_ms(agent, procs):
     _, client, watch = agent
     first = start(client, watch, procs)

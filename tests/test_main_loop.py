@@ -144,3 +144,30 @@ def test_a_failing_inline_job_is_counted_and_the_loop_goes_on(running, capsys):
     until_idle(loop)
     ran: list[int] = []
     assert loop.run_or_post(lambda: ran.append(1)) and ran == [1]
+
+
+def test_due_brings_the_next_tick_forward():
+    """A tick period of 60 s; a deadline 10 ms away (a stop deadline at a host agent) asks
+    for a tick then, from another thread, and gets it long before the period ends."""
+    ticks: list[float] = []
+    box: dict[str, MainLoop] = {}
+    made = threading.Event()
+
+    def main() -> None:
+        box["loop"] = MainLoop(beat_every=5.0)
+        made.set()
+        box["loop"].run(ticks.append, period=60.0)
+
+    t = threading.Thread(target=main, daemon=True)
+    t.start()
+    assert made.wait(5)
+    loop = box["loop"]
+    try:
+        wait_until(lambda: len(ticks) == 1, 5, "the first tick")
+        loop.due(loop.clock() + 0.01)
+        wait_until(lambda: len(ticks) == 2, 20, "the tick the deadline asked for")
+        assert ticks[1] - ticks[0] < 30
+    finally:
+        loop.request_stop()
+        t.join(5)
+    assert not t.is_alive()

@@ -13,7 +13,7 @@ import signal
 import pytest
 from conftest import RELAY as DATA
 from conftest import RELAY_KEYS as K
-from conftest import edit_yaml, package_copy, tcp_peers
+from conftest import edit_yaml, package_copy, pid_alive, tcp_peers
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import wait_until
@@ -56,6 +56,42 @@ def test_measurement_change_swaps_rewires_and_sets_cv_parameter(system):
     swap = next(e for e in adaptations if any("start filtered" in p for p in e.plan))
     assert any(c.rule == "PathRule" for c in swap.cause)
     assert {"plan", "execute"} <= set(swap.durations)
+
+
+def test_a_stop_then_start_swap_kills_the_old_node_at_its_stop_deadline(system, tmp_path):
+    """runtime.yaml ``stop_deadline: {direct: 0}``: the cold swap to ``filtered`` exports
+    direct's state (with the sink's rewire, one batch), kills direct at once (no grace
+    period: a stop, not a failure), then starts filtered; the sink's output goes through it."""
+    from rra_agent.node import decode_data
+
+    pkg = package_copy(tmp_path)
+    edit_yaml(pkg / "runtime.yaml",
+              lambda d: d["replacement"].update(stop_deadline={"direct": 0}))  # fmt: skip
+    sys_ = system(pkg)
+    direct_pid = sys_.node(sys_.status, "direct")["pid"]
+    out: list[dict] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
+    )
+    try:
+        sys_.set_level(7.0)
+        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap to filtered")
+        assert sys_.node(st, "direct")["state"] == "STOPPED" and not pid_alive(direct_pid)
+        wait_until(lambda: any(o.get("value", 0) >= 100 for o in out), 10,
+                   "samples through filtered")  # fmt: skip
+    finally:
+        sub.undeclare()
+    states = [e for e in sys_.events() if isinstance(e, m.NodeState) and e.node == "direct"]
+    stopping = next(e for e in states if e.state == "STOPPING")
+    stopped = next(e for e in states if e.state == "STOPPED")
+    assert "deadline 0 ms" in stopping.reason and "status -9" in stopped.reason, states
+    assert not any(e.state in ("BACKOFF", "FATAL") for e in states)
+    swap = next(e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+                and any("start filtered" in p for p in e.plan))  # fmt: skip
+    plan = swap.plan
+    assert plan.index(next(p for p in plan if p.startswith("export_state direct"))) < plan.index(
+        next(p for p in plan if p.startswith("stop direct"))
+    ), plan
 
 
 def test_crashed_node_restarts_with_its_current_wiring(system):

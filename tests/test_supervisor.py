@@ -294,6 +294,49 @@ def test_stop_escalates_sigint_sigterm_sigkill(rig: Rig) -> None:
     assert rig.sup.all_stopped()
 
 
+def test_a_stop_with_deadline_0_kills_at_once(rig: Rig) -> None:
+    """The strategy said the old node has no grace period: SIGKILL, no SIGINT first, and
+    its exit is a stop (STOPPED), not a failure."""
+    rig.run("n")
+    pid = rig.pid()
+    rig.sup.stop("n", 0.0, deadline=0.0)
+    assert rig.host.signals == [(pid, signal.SIGKILL)]
+    assert rig.state() == State.STOPPING and "deadline 0 ms" in rig.events[-1].reason
+    rig.sup.on_exit(pid, -9, 0.001)
+    assert rig.state() == State.STOPPED and rig.sup.procs["n"].restarts == 0
+
+
+def test_a_stop_with_a_deadline_kills_when_it_passes_not_after_the_grace_periods(rig: Rig) -> None:
+    rig.run("n")
+    pid = rig.pid()
+    rig.sup.stop("n", 0.0, deadline=0.05)
+    assert rig.host.signals == [(pid, signal.SIGINT)]
+    assert rig.sup.next_deadline() == pytest.approx(0.05)  # the host agent ticks then
+    rig.sup.tick(0.04)
+    assert rig.host.signals == [(pid, signal.SIGINT)]
+    rig.sup.tick(0.05)
+    assert rig.host.signals == [(pid, signal.SIGINT), (pid, signal.SIGKILL)]
+    rig.sup.on_exit(pid, -9, 0.06)
+    assert rig.state() == State.STOPPED and rig.sup.next_deadline() is None
+
+
+def test_a_stricter_stop_of_a_stopping_node_shortens_its_wait(rig: Rig) -> None:
+    rig.run("n")
+    pid = rig.pid()
+    rig.sup.stop("n", 0.0)
+    assert rig.sup.next_deadline() == pytest.approx(2.0)
+    rig.sup.stop("n", 0.5, deadline=0.1)
+    assert rig.sup.next_deadline() == pytest.approx(0.6)
+    rig.sup.stop("n", 0.55, deadline=0.0)
+    assert rig.host.signals == [(pid, signal.SIGINT), (pid, signal.SIGKILL)]
+
+
+def test_only_stop_escalations_ask_for_an_early_tick(rig: Rig) -> None:
+    rig.run("n")  # its start deadline was cleared when ready; a backoff waits on the tick
+    rig.sup.on_exit(rig.pid(), 1, 0.0)
+    assert rig.state() == State.BACKOFF and rig.sup.next_deadline() is None
+
+
 def test_stop_during_backoff_or_fatal(rig: Rig) -> None:
     rig.run("a", "b")
     rig.sup.on_exit(rig.pid("a"), 1, 0.0)

@@ -277,6 +277,13 @@ CASES = [
         "radio_x",
         "unknown component 'radio_x'",
     ),
+    (
+        "runtime.yaml",
+        "radio_b: start-then-stop",
+        "radio_b: start-then-stop\n  stop_deadline: {radio_y: 0.01}",
+        "radio_y",
+        "unknown component 'radio_y' (did you mean",
+    ),
     # measurements.yaml
     (
         "measurements.yaml",

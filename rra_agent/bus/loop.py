@@ -73,6 +73,8 @@ class MainLoop:
         #: Jobs run inline on a calling thread, and the inline time of the current window.
         self.inline = 0
         self._window = (0.0, 0.0)
+        #: The next tick is due no later than this (`due`), whatever the period says.
+        self._due = float("inf")
 
     def wake(self) -> None:
         with contextlib.suppress(BlockingIOError, OSError):  # a wake-up is already pending
@@ -168,13 +170,23 @@ class MainLoop:
             self.heartbeat.beat()
             self._next_beat = now + self.beat_every
 
+    def due(self, at: float) -> None:
+        """Run the next tick no later than ``at`` (this loop's clock), e.g. when a deadline
+        shorter than the tick period ends; safe from any thread."""
+        if at < self._due:
+            self._due = at
+            self.wake()
+
     def run(self, tick: Callable[[float], None] | None = None, period: float = 0.02) -> None:
-        """Cycle until stopped, calling ``tick(now)`` about every ``period`` seconds."""
+        """Cycle until stopped, calling ``tick(now)`` about every ``period`` seconds, and
+        sooner when `due` asks."""
         next_tick = self.clock()
         while not self.stopping:
-            wait = self.beat_every if tick is None else max(0.0, next_tick - self.clock())
+            at = min(next_tick, self._due)
+            wait = self.beat_every if tick is None else max(0.0, at - self.clock())
             self.cycle(min(wait, self.beat_every))
-            if tick is not None and self.clock() >= next_tick:
+            if tick is not None and self.clock() >= min(next_tick, self._due):
+                self._due = float("inf")
                 self._run(lambda: tick(self.clock()))
                 next_tick = self.clock() + period
 

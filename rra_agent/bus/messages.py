@@ -25,7 +25,7 @@ has accepted, so a leader that was frozen and resumes cannot act after its succe
 from __future__ import annotations
 
 import struct
-from typing import Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import msgspec
 
@@ -337,10 +337,14 @@ class StartNode(Msg, tag="start_node"):
 
 
 class StopNode(Msg, tag="stop_node"):
-    """Stop a node (SIGINT, then SIGTERM, then SIGKILL) and stop supervising it."""
+    """Stop a node (SIGINT, then SIGTERM, then SIGKILL) and stop supervising it. With a
+    ``deadline`` (seconds), the node is killed (SIGKILL) if it has not stopped by then; 0:
+    killed at once, without its ``on_stop`` (the strategy's choice, runtime.yaml
+    ``replacement: stop_deadline``)."""
 
     node: str
     fence: Fence | None = None
+    deadline: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
 
 
 class UpdateSpec(Msg, tag="update_spec"):

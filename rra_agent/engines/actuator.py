@@ -28,7 +28,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import msgspec
@@ -226,14 +226,16 @@ class ZenohActuator:
             with contextlib.suppress(NoReply, StepFailed):
                 self._host(spec, m.StopNode(node=spec.name), "stop")
 
-    def stop(self, specs: list[m.NodeSpec]) -> None:
+    def stop(self, specs: list[m.NodeSpec], deadlines: Mapping[str, float] | None = None) -> None:
         specs = self._reachable(specs, "stop")
         trace.mark("engine:stop", ",".join(s.name for s in specs))
         mark = self._mark()
         waiting: list[m.NodeSpec] = []
+        deadlines = deadlines or {}
         try:
             for spec in specs:
-                result = self._host(spec, m.StopNode(node=spec.name), "stop")
+                req = m.StopNode(node=spec.name, deadline=deadlines.get(spec.name))
+                result = self._host(spec, req, "stop")
                 if not (isinstance(result, dict) and result.get("already")):
                     waiting.append(spec)
         except NoReply as e:

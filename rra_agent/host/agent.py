@@ -369,8 +369,8 @@ class HostAgent:
                 if self.stopping:  # e.g. a standby engine taking over as the leader stops
                     return m.Err(message=f"host {self.host} is shutting down", code="busy")
                 return self._start(spec)
-            case m.StopNode(node=name):
-                return self._stop(name)
+            case m.StopNode(node=name, deadline=deadline):
+                return self._stop(name, deadline)
             case m.UpdateSpec(specs=specs):
                 for spec in specs:
                     if spec.name in self.members.members:
@@ -468,14 +468,22 @@ class HostAgent:
         trace.mark("agent:spawned", spec.name)
         return m.Ok(result={"pid": p.pid, "state": p.state.value})
 
-    def _stop(self, name: str) -> m.Reply:
+    def _stop(self, name: str, deadline: float | None = None) -> m.Reply:
         if name in self.members.members:
             return self._stop_member(name)
         p = self.supervisor.procs.get(name)
         if p is None or p.state in (State.STOPPED, State.EXITED):
             return m.Ok(result={"state": p.state.value if p else "STOPPED", "already": True})
-        self.supervisor.stop(name, self.clock())
+        self.supervisor.stop(name, self.clock(), deadline)
+        self._tick_due()
         return m.Ok(result={"state": p.state.value})
+
+    def _tick_due(self) -> None:
+        """Tick when the supervisor's next deadline ends (a stop deadline can be shorter
+        than the tick period)."""
+        at = self.supervisor.next_deadline()
+        if at is not None:
+            self.loop.due(at)
 
     def node_states(self) -> list[m.NodeState]:
         now = time.time()
@@ -539,6 +547,7 @@ class HostAgent:
         for name, p in list(self.supervisor.procs.items()):
             if p.state == State.STOPPED and not p.want_running:
                 self.local.forget(name)
+        self._tick_due()
 
     def _on_signal(self, signum: int) -> None:
         """A second Ctrl-C (or SIGTERM) during the shutdown kills what is left at once."""

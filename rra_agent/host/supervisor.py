@@ -11,7 +11,8 @@ States (as in Supervisor, plus one for a suspected freeze)::
     any failure beyond the restart budget (max_restarts in restart_window) --> FATAL
     FATAL --cool-down elapsed--> STARTING (the budget starts afresh)
     any live state --stop--> STOPPING: SIGINT, then SIGTERM, then SIGKILL --exit--> STOPPED
-    (a STARTING one: SIGTERM, then SIGKILL: it may not handle SIGINT yet)
+    (a STARTING one: SIGTERM, then SIGKILL: it may not handle SIGINT yet; a stop with a
+    deadline: SIGKILL when the deadline passes, at once for 0)
 
 How failures are told from a slow observer (docs/architecture.md, failure model):
 
@@ -198,11 +199,20 @@ class Supervisor:
             p.restarts = 0
             self._spawn(p, now, "start requested")
 
-    def stop(self, name: str, now: float) -> None:
+    def stop(self, name: str, now: float, deadline: float | None = None) -> None:
+        """Stop ``name``: SIGINT, SIGTERM and SIGKILL each after the stop policy's grace
+        period, or, with ``deadline`` (seconds), SIGKILL once it has passed (0: at once)."""
         p = self.procs[name]
         p.want_running = False
         if p.state in (State.STARTING, State.RUNNING, State.UNRESPONSIVE):
-            self._begin_stop(p, now, "stop requested")
+            self._begin_stop(p, now, "stop requested", deadline)
+        elif p.state == State.STOPPING and deadline is not None:
+            if deadline <= 0:  # a second, stricter stop of one already stopping
+                p.escalation = []
+                self._kill(p)
+            elif p.deadline is None or now + deadline < p.deadline:
+                p.escalation = [signal.SIGKILL]
+                p.deadline = now + deadline
         elif p.state in (State.BACKOFF, State.FATAL):
             p.deadline = None
             self._set(p, State.STOPPED, now, f"stop requested in {p.state}")
@@ -359,16 +369,21 @@ class Supervisor:
         p.grace_until = now + p.policy.heartbeat_timeout
         self._set(p, State.STARTING, now, reason)
 
-    def _begin_stop(self, p: Proc, now: float, reason: str) -> None:
+    def _begin_stop(self, p: Proc, now: float, reason: str, deadline: float | None = None) -> None:
         # A process still starting may not have its handlers yet: a SIGINT would interrupt
         # its imports (a KeyboardInterrupt traceback in its log). SIGTERM ends it silently
         # then, and is handled like SIGINT once the node runs.
         starting = p.state == State.STARTING
         first = signal.SIGTERM if starting else signal.SIGINT
         p.escalation = [signal.SIGKILL] if starting else [signal.SIGTERM, signal.SIGKILL]
+        p.deadline = now + self.stop_policy.sigint_timeout
+        if deadline is not None:  # no grace period: killed when the deadline passes
+            first = signal.SIGKILL if deadline <= 0 else first
+            p.escalation = [] if deadline <= 0 else [signal.SIGKILL]
+            p.deadline = now + max(deadline, 0.0)
+            reason = f"{reason} (deadline {deadline * 1e3:g} ms)"
         if p.pid is not None:
             p.host.signal(p.pid, first)
-        p.deadline = now + self.stop_policy.sigint_timeout
         self._set(p, State.STOPPING, now, reason)
 
     def _escalate(self, p: Proc, now: float) -> None:
@@ -435,6 +450,15 @@ class Supervisor:
         self._set(p, State.FATAL, now, f"{reason}; retrying in {cooldown:g} s")
 
     # ---- queries -----------------------------------------------------------------------
+    def next_deadline(self) -> float | None:
+        """When the earliest stop escalation is due (a stop deadline may be shorter than
+        the tick period; every other wait is long enough for any tick)."""
+        return min(
+            (p.deadline for p in self.procs.values()
+             if p.state == State.STOPPING and p.deadline is not None),
+            default=None,
+        )  # fmt: skip
+
     def state(self, name: str) -> State:
         return self.procs[name].state
 

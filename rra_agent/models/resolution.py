@@ -16,7 +16,7 @@ In YAML each transformation is a one-key mapping::
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 
@@ -106,6 +106,13 @@ class Replacement(FrozenModel, frozen=True):
     #: Per-component override, keyed by the component being started.
     components: dict[str, Strategy] = {}
     state_transfer: list[StateTransfer] = []
+    #: Seconds a node swapped out by a ``stop-then-start`` swap may take to stop (its
+    #: ``on_stop``, its session's close) before its host agent kills it, keyed by the
+    #: component being stopped; 0: killed at once (its state exported first). Without an
+    #: entry it stops with the host agent's grace periods (SIGINT, SIGTERM, SIGKILL after
+    #: 2 s each). The replacement starts only once it is gone: a deadline shortens the
+    #: gap in which neither runs.
+    stop_deadline: dict[str, Annotated[float, msgspec.Meta(ge=0.0, le=60.0)]] = {}
 
     def strategy_for(self, component: str) -> Strategy:
         return self.components.get(component, self.default)

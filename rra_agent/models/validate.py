@@ -364,6 +364,10 @@ class _Checker:
             if name not in self.components:
                 msg = unknown_name("component", name, self.components)
                 self.error("runtime", ("replacement", "components", name), msg, key=True)
+        for name in rep.stop_deadline:
+            if name not in self.components:
+                msg = unknown_name("component", name, self.components)
+                self.error("runtime", ("replacement", "stop_deadline", name), msg, key=True)
         targets = [st.target for st in rep.state_transfer]
         for i, st in enumerate(rep.state_transfer):
             path: tuple[PathItem, ...] = ("replacement", "state_transfer", i)

@@ -6,11 +6,13 @@ agent's own ``python -m MODULE`` processes (the engines) run forked, after MODUL
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 from conftest import pid_alive
 
@@ -19,7 +21,7 @@ from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.messages import NodeSpec, PortSpec
 from rra_agent.bus.runtime import open_session
 from rra_agent.host.processes import LocalHost
-from rra_agent.models.system import Command, Supervision
+from rra_agent.models.system import Command, Scheduling, Supervision
 
 
 def spec(name: str, impl: str | Command = "rra_agent.nodes.generic.Relay") -> NodeSpec:
@@ -197,6 +199,69 @@ def test_a_start_takes_the_waiting_spare_and_a_new_spare_is_forked(host: LocalHo
     wait_until(lambda: _our_children() - known, 10, "the next spare")
     # a spare is not a node: the host reaps nothing for it and knows only its nodes
     assert set(host.running()) == {first, second}
+
+
+def _router_links(pid: int, port: int) -> set[int]:
+    """Socket inodes of ``pid`` connected to 127.0.0.1:``port`` (its Zenoh session's link)."""
+    inodes = set()
+    with contextlib.suppress(OSError):
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            with contextlib.suppress(OSError):
+                target = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if target.startswith("socket:["):
+                    inodes.add(int(target[8:-1]))
+    with open("/proc/net/tcp") as f:
+        rows = [line.split() for line in f.readlines()[1:]]
+    return {int(r[9]) for r in rows if int(r[2].split(":")[1], 16) == port and int(r[9]) in inodes}
+
+
+@pytest.fixture
+def ahead(tmp_path: Path):
+    """A host whose nodes share one bus configuration (no certificates): spares open
+    their sessions ahead. (the host, the router's port)"""
+    port = free_port()
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{port}"])
+    hub = open_session(bus.host_router(hub=True))
+    h = LocalHost("h", bus, tmp_path)
+    h.spare_bus = bus
+    try:
+        yield h, port
+    finally:
+        h.kill_all()
+        hub.close()
+
+
+def test_a_spare_opens_its_session_ahead_and_its_node_takes_it(ahead):
+    """The spare waiting for a request is already linked to the router; the node it
+    becomes runs on that very link (no second session opened on the start's path)."""
+    host, port = ahead
+    before = _our_children()
+    first = host.spawn(spec("p1"))
+    assert host.zygote is not None
+    known = {first, host.zygote.pid, *before}
+    spare = wait_until(lambda: next(iter(_our_children() - known), None), 10, "a spare")
+    link = wait_until(lambda: _router_links(spare, port), 10, "the spare's session")
+    assert host.spawn(spec("p2")) == spare
+    wait_until(lambda: host.beats().get("p2") and host.beats()["p2"].ready, 15, "p2 ready")
+    assert _router_links(spare, port) == link
+
+
+def test_a_node_with_scheduling_opens_its_own_session(ahead):
+    """Zenoh's threads must inherit a node's scheduling: a node with ``nice: 5`` does not
+    take the pre-opened session (its threads started before it knew its scheduling)."""
+    host, port = ahead
+    nice = msgspec.structs.replace(spec("p3"), scheduling=Scheduling(nice=5))
+    first = host.spawn(spec("p0"))  # the spare after it was forked with the host's bus
+    assert host.zygote is not None
+    before = {first, host.zygote.pid}
+    wait_until(lambda: any(_router_links(p, port) for p in _our_children() - before), 10,
+               "a spare's session")  # fmt: skip
+    pid = host.spawn(nice)
+    wait_until(lambda: host.beats().get("p3") and host.beats()["p3"].ready, 15, "p3 ready")
+    threads = os.listdir(f"/proc/{pid}/task")
+    assert len(threads) > 3  # Zenoh's among them
+    for tid in threads:
+        assert os.getpriority(os.PRIO_PROCESS, int(tid)) == 5, tid
 
 
 def test_spares_end_with_their_fork_server(tmp_path, monkeypatch):

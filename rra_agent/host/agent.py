@@ -112,6 +112,9 @@ class HostAgent:
             prober=self._probe_later,
         )
         self.local.bus_for = self._child_bus
+        # Without certificates every node has this host's bus configuration: spares open
+        # their sessions ahead (with them, a node's identity is its own, known at its start).
+        self.local.spare_bus = self.bus if certs is None else None
         self.clock = clock
         self.supervisor = Supervisor(
             stop=stop, listener=self._on_transition, notices=self._on_notice

@@ -166,9 +166,15 @@ def _warm_mains(mains: Iterable[list[str]]) -> None:
                 warm_up(argv[3:])
 
 
-def serve(host_pid: int, preload: Iterable[str] = (), mains: Sequence[list[str]] = ()) -> int:
+def serve(
+    host_pid: int,
+    preload: Iterable[str] = (),
+    mains: Sequence[list[str]] = (),
+    spare_bus: str | None = None,
+) -> int:
     """The zygote's main loop (``python -m rra_agent.host.forkserver HOST_PID [--main JSON]...
-    [MODULE ...]``)."""
+    [--spare-bus JSON] [MODULE ...]``). ``spare_bus``: the bus configuration every node of
+    this host has (none with per-node identities): each spare opens its session ahead."""
     _preload((*PRELOAD, *preload))
     with contextlib.suppress(Exception):
         _warm_sdk()
@@ -182,7 +188,7 @@ def serve(host_pid: int, preload: Iterable[str] = (), mains: Sequence[list[str]]
     spares: list[tuple[int, int]] = []
     branch = _Branch(list(mains), out, host_pid, spares) if mains else None
     try:
-        return _serve_requests(stdin, out, host_pid, SPARES, spares, branch)
+        return _serve_requests(stdin, out, host_pid, SPARES, spares, branch, spare_bus)
     finally:
         if branch is not None:
             branch.close()
@@ -195,15 +201,17 @@ def _serve_requests(
     wanted: int,
     spares: list[tuple[int, int]],
     branch: _Branch | None,
+    preopen: str | None = None,
 ) -> int:
     """Answer the requests read from ``requests`` until its end of file, keeping ``wanted``
-    spares; a request with ``main`` goes to ``branch`` if there is one."""
+    spares (each opening a session with ``preopen``, if given); a request with ``main``
+    goes to ``branch`` if there is one."""
     held = [branch.pipe] if branch is not None else []
     buffer = b""
     while True:
         with contextlib.suppress(OSError):
             while len(spares) < wanted:
-                spares.append(_spare([requests, out], host_pid, spares, held))
+                spares.append(_spare([requests, out], host_pid, spares, held, preopen))
         select.select([requests], [], [])
         chunk = os.read(requests, 65536)
         if not chunk:
@@ -218,7 +226,7 @@ def _serve_requests(
                 branch.forward(line)
                 held[:] = [branch.pipe]
             else:
-                _start(request, line, spares, out, [requests, out], host_pid, held)
+                _start(request, line, spares, out, [requests, out], host_pid, held, preopen)
 
 
 class _Branch:
@@ -288,12 +296,13 @@ def _start(
     fds: list[int],
     host_pid: int,
     held: Iterable[int] = (),
+    preopen: str | None = None,
 ) -> None:
     """Hand the request to a spare (a node process already: adopted, warm, waiting); with
     none left (or all dead), fork one for it first. Either way it is one kind of process."""
     while True:
         if not spares:
-            spares.append(_spare(fds, host_pid, spares, held))
+            spares.append(_spare(fds, host_pid, spares, held, preopen))
         pid, pipe = spares.pop(0)
         try:
             os.write(pipe, line + b"\n")
@@ -306,12 +315,17 @@ def _start(
 
 
 def _spare(
-    fds: list[int], host_pid: int, spares: list[tuple[int, int]], held: Iterable[int] = ()
+    fds: list[int],
+    host_pid: int,
+    spares: list[tuple[int, int]],
+    held: Iterable[int] = (),
+    preopen: str | None = None,
 ) -> tuple[int, int]:
     """Fork a spare node process (through an intermediate, so the host agent adopts it) that
     waits for its request on a pipe; (its pid, the pipe's write end). It closes the other
     spares' pipes (a spare must see the end of file when the zygote goes) and ``held``
-    (the branch's request pipe)."""
+    (the branch's request pipe). With ``preopen`` (a bus configuration) it opens its
+    session while it waits."""
     req_r, req_w = os.pipe()
     pid_r, pid_w = os.pipe()
     pid = os.fork()
@@ -324,7 +338,7 @@ def _spare(
             if node == 0:
                 os.close(pid_w)
                 _detach(fds)
-                _wait_for_request(req_r, host_pid)
+                _wait_for_request(req_r, host_pid, preopen)
             os.write(pid_w, str(node).encode())
         except BaseException:
             status = 1
@@ -350,13 +364,19 @@ def _detach(fds: list[int]) -> None:
     os.close(null)
 
 
-def _wait_for_request(pipe: int, host_pid: int) -> None:
-    """In a spare: be adopted, then wait for the request and become its node. Never
-    returns; exits quietly when the zygote goes without giving it one."""
+def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> None:
+    """In a spare: be adopted, open the session ahead (``preopen``), then wait for the
+    request and become its node. Never returns; exits quietly when the zygote goes without
+    giving it one."""
     request: dict[str, Any] | None = None
     try:
         if not _adopted(host_pid):
             os._exit(EXIT_SETUP)
+        if preopen is not None:
+            from rra_agent.bus import runtime
+            from rra_agent.bus.config import BusConfig
+
+            runtime.preopen(msgspec.json.decode(preopen, type=BusConfig))
         data = b""
         while not data.endswith(b"\n"):
             chunk = os.read(pipe, 65536)
@@ -389,12 +409,16 @@ def _node(request: dict[str, Any]) -> None:
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         _redirect(request["log"])
         spec = msgspec.convert(request["spec"], NodeSpec)
+        argv = request.get("argv")
+        main = request.get("main")
+        if argv:  # exec'd: the command opens its own session, if it has one
+            from rra_agent.bus.runtime import discard_preopened
+
+            discard_preopened()
         _schedule(spec)
         env = request.get("env", {})
         if request.get("cwd"):
             os.chdir(request["cwd"])
-        argv = request.get("argv")
-        main = request.get("main")
         if argv and not main:
             os.execvpe(argv[0], argv, {**os.environ, **env})
         os.environ.update(env)
@@ -460,11 +484,12 @@ def _status(value: object) -> int:
 
 
 def _schedule(spec: NodeSpec) -> None:
-    """The component's scheduling, before it runs any code; a refusal is logged, not fatal
-    (the host agent also reports it as a warning event)."""
+    """The component's scheduling, before it runs any code, on every thread (those of a
+    session opened ahead too); a refusal is logged, not fatal (the host agent also reports
+    it as a warning event)."""
     from rra_agent.host import scheduling
 
-    for problem in scheduling.apply(spec.scheduling):
+    for problem in scheduling.apply_to_process(spec.scheduling):
         print(f"rra node {spec.name}: scheduling: {problem}", file=sys.stderr, flush=True)
 
 
@@ -510,8 +535,11 @@ class ForkServer:
         preload: Iterable[str] = (),
         pass_fds: Iterable[int] = (),
         mains: Iterable[Sequence[str]] = (),
+        spare_bus: str | None = None,
     ) -> None:
         warm = [a for argv in mains for a in ("--main", json.dumps(list(argv)))]
+        if spare_bus is not None:
+            warm += ["--spare-bus", spare_bus]
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "rra_agent.host.forkserver", str(os.getpid()), *warm, *preload],
             stdin=subprocess.PIPE,
@@ -619,12 +647,15 @@ class ForkServer:
 
 def _cli(argv: list[str]) -> int:
     mains, names, args = [], [], iter(argv[1:])
+    spare_bus = None
     for arg in args:
         if arg == "--main":
             mains.append(json.loads(next(args)))
+        elif arg == "--spare-bus":
+            spare_bus = next(args)
         else:
             names.append(arg)
-    return serve(int(argv[0]), names, mains)
+    return serve(int(argv[0]), names, mains, spare_bus)
 
 
 if __name__ == "__main__":

@@ -111,6 +111,10 @@ class LocalHost:
         self.extra_env: dict[str, str] = {}
         #: The bus configuration of each child (its identity: engine or node, its Zenoh id).
         self.bus_for: Callable[[NodeSpec], BusConfig] = lambda spec: self.bus
+        #: The one bus configuration of every node of this host, if they have one (no
+        #: per-node identity): the fork server's spares open their sessions with it ahead
+        #: (``RRA_SPARE_SESSION=0``: not).
+        self.spare_bus: BusConfig | None = None
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         #: Live node processes: pid -> node name.
@@ -228,8 +232,12 @@ class LocalHost:
     # ---- internals ---------------------------------------------------------------------
     def _zygote(self) -> ForkServer:
         if self.zygote is None or self.zygote.dead:
+            ahead = os.environ.get("RRA_SPARE_SESSION", "1") != "0"
             self.zygote = ForkServer(
-                self._preload, pass_fds=[self.heartbeats.fd], mains=self.forked
+                self._preload,
+                pass_fds=[self.heartbeats.fd],
+                mains=self.forked,
+                spare_bus=self.spare_bus.to_env() if self.spare_bus and ahead else None,
             )
             self.zygote_starts += 1
         return self.zygote

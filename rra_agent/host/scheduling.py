@@ -3,13 +3,15 @@ process, and read back what the kernel actually gave it.
 
 `apply` runs in the node process itself, before the node runs any of its code (the fork
 server's child, or the ``preexec_fn`` of an exec'd one), so every thread the node later
-starts (Zenoh's included) inherits it. `differences` is the host agent's check once the
+starts (Zenoh's included) inherits it; `apply_to_process` also sets the threads already
+there (a spare's session opened ahead). `differences` is the host agent's check once the
 node is ready: what was asked for and not granted, one line each, for a warning event.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 
 from rra_agent.models.system import Scheduling
 
@@ -54,6 +56,28 @@ def apply(s: Scheduling, pid: int = 0, *, reset_on_fork: bool = False) -> list[s
         except OSError as e:
             problems.append(f"{_label(s)} refused ({e.strerror})")
     return problems
+
+
+def apply_to_process(s: Scheduling) -> list[str]:
+    """`apply` to every thread of this process, the calling one first (its refusals are
+    returned): threads started before (a session opened ahead by a spare, whose Zenoh
+    threads would otherwise run without it) as well as those started later, which inherit
+    it from the thread that starts them."""
+    problems = apply(s)
+    if s.is_default:
+        return problems
+    me = threading.get_native_id()
+    for tid in _threads():
+        if tid != me:
+            apply(s, tid)  # what the kernel refuses one thread it refused the first
+    return problems
+
+
+def _threads() -> list[int]:
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return []
 
 
 def observed(pid: int) -> Scheduling:

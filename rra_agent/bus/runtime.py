@@ -68,8 +68,8 @@ def preopen(bus: BusConfig) -> None:
 
 
 def discard_preopened() -> None:
-    """Close a pre-opened session this process will not use (another configuration, a
-    command ``exec``ed, threads that must inherit the node's scheduling)."""
+    """Close a pre-opened session this process will not use (a node of another bus
+    configuration, a command ``exec``ed in its place)."""
     global _preopened
     if _preopened is not None:
         _, session = _preopened

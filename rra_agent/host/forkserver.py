@@ -42,7 +42,10 @@ Protocol on the zygote's stdin/stdout, one JSON object per line:
 
 The zygote's arguments are the modules and implementations to preload; an absolute folder
 among them is the system package's folder, appended to the import path before them;
-``--main JSON`` (repeatable) a command ``[python, "-m", MODULE, ARG...]`` to prepare for.
+``--main JSON`` (repeatable) a command ``[python, "-m", MODULE, ARG...]`` to prepare for;
+``--spare-bus JSON`` the bus configuration of every node of the host, when they share one
+(no certificates): each spare opens its Zenoh session with it while it waits, and the node
+it becomes takes that session (`rra_agent.bus.runtime.preopen`).
 
 The zygote exits when its stdin closes.
 """

@@ -634,3 +634,42 @@ def test_a_leader_refused_as_superseded_steps_down(agent, procs):
         assert not election.leading and changes == [True, False]
     finally:
         election.close()
+
+
+def test_a_container_s_members_load_only_once_its_token_is_routed(tmp_path):
+    """A container is RUNNING for its supervisor as soon as its heartbeat's ready flag is
+    set (shared memory: at once), but its control queryable is known to the router only
+    once its declarations got there. Loads sent before found nobody ("no reply", seen with
+    ten containers starting at once): the members wait for the container's liveliness
+    token, declared after the queryable, as this agent's own session sees it."""
+    from rra_agent.bus.config import BusConfig, free_port
+    from rra_agent.deployment import deploy
+    from rra_agent.host.agent import HostAgent
+    from rra_agent.host.catalog import Catalog
+    from rra_agent.host.supervisor import State, Transition
+
+    dep = deploy(PACKAGE)
+    agent = HostAgent(
+        dep.system, "h1", BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"]), tmp_path,
+        hub=True, catalog=Catalog(dep.configured, "h1", package_root=dep.package.root),
+    )  # fmt: skip
+    agent.supervisor.add(agent.catalog.container_spec("box"), agent.local)
+    seen: list[tuple[str, State, int | None]] = []
+    agent.members.on_container = lambda name, state, pid, now: seen.append((name, state, pid))
+
+    def moved(state: State, previous: State) -> None:
+        agent._on_transition(Transition("box", "h1", previous, state, 0.0, 42, 0, ""))
+
+    moved(State.STARTING, State.STOPPED)
+    moved(State.RUNNING, State.STARTING)  # the ready flag: the token is not seen yet
+    assert seen == [("box", State.STARTING, 42)]
+    agent._on_ready("box")  # its token, as the agent's session saw it
+    assert seen[-1] == ("box", State.RUNNING, 42) and len(seen) == 2
+    agent._on_ready("box")  # seen again: nothing is loaded twice
+    assert len(seen) == 2
+    moved(State.BACKOFF, State.RUNNING)  # it died: its next start waits for a new token
+    moved(State.STARTING, State.BACKOFF)
+    moved(State.RUNNING, State.STARTING)
+    assert [s for _, s, _ in seen[2:]] == [State.BACKOFF, State.STARTING]
+    agent._on_ready("box")
+    assert seen[-1][1] == State.RUNNING

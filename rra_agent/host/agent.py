@@ -121,6 +121,11 @@ class HostAgent:
         )
         #: Components running inside this host's containers (`host/container.py`).
         self.members = Members(host, self._send_container, self._on_transition)
+        #: Containers whose liveliness token this agent's session has seen since they
+        #: started, and those RUNNING that wait for it (their pid): see
+        #: `_container_transition`.
+        self._routed: set[str] = set()
+        self._awaiting_token: dict[str, int | None] = {}
         self.loop = MainLoop(clock)
         self.loop.on_wake = self._reap
         self.counters = Counters()
@@ -159,7 +164,7 @@ class HostAgent:
         p = self.supervisor.procs.get(t.node) or self.members.members.get(t.node)
         trace.mark(f"agent:{t.state.value}", t.node)
         if t.node in self.catalog.containers and t.node in self.supervisor.procs:
-            self.members.on_container(t.node, t.state, t.pid, t.now)
+            self._container_transition(t)
         msg = m.NodeState(
             stamp=time.time(),
             node=t.node,
@@ -247,8 +252,27 @@ class HostAgent:
     def _on_ready(self, name: str) -> None:
         if name in self.members.members:
             self.members.on_ready(name, self.clock())
-        else:
-            self.supervisor.on_ready(name, self.clock())
+            return
+        if name in self.catalog.containers:
+            self._routed.add(name)
+            waiting = self._awaiting_token.pop(name, None)
+            if waiting is not None:
+                self.members.on_container(name, State.RUNNING, waiting, self.clock())
+        self.supervisor.on_ready(name, self.clock())
+
+    def _container_transition(self, t: Transition) -> None:
+        """A container's state, for its members. RUNNING (its heartbeat's ready flag, local
+        and immediate) counts for them only once this agent's session has seen its token:
+        the token is declared after the container's control queryable, so only then does
+        a load request find it (sent before, it found none: "no reply", seen with ten
+        containers starting at once)."""
+        if t.state != State.RUNNING:
+            self._routed.discard(t.node)
+            self._awaiting_token.pop(t.node, None)
+        elif t.node not in self._routed:
+            self._awaiting_token[t.node] = t.pid
+            return
+        self.members.on_container(t.node, t.state, t.pid, t.now)
 
     # ---- containers ------------------------------------------------------------------
     def _send_container(self, container: str, req: m.ContainerRequest, on_reply) -> None:

@@ -65,3 +65,17 @@ def test_the_floor_echo_refuses_what_the_sdk_refuses():
     echo(Sample(encode_data([1, 2]), None))
     echo(Sample(b"\x80" + b"\x00" * MAX_PAYLOAD["data"], None))
     assert pub.puts == []
+
+
+def test_the_in_process_timings_run_each_callback_and_the_sdk_relays():
+    """The hot-cache table times the three callbacks in this process (the SDK's through
+    ZenohTransport and a NodeCore running Relay): each runs, and costs something."""
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    try:
+        timings = bench.in_process(session, "rra_agent.nodes.generic.Relay", n=200)
+    finally:
+        session.close()
+    assert set(timings) == {bench.RAW, bench.FLOOR, bench.SDK}
+    assert all(0 < us < 10_000 for us in timings.values()), timings

@@ -395,7 +395,7 @@ def per_sample_us(fn: Callable[[Any], None], sample: Any, n: int = 20000, reps: 
     return best * 1e6
 
 
-def in_process(session: zenoh.Session, impl: str) -> dict[str, float]:
+def in_process(session: zenoh.Session, impl: str, n: int = 20000) -> dict[str, float]:
     """Hot-cache cost per sample of each mode's callback (the SDK's: `ZenohTransport`'s, with
     a `NodeCore` running ``impl``), each publishing on a key nobody listens to."""
     from rra_agent.bus.runtime import ZenohTransport
@@ -415,9 +415,9 @@ def in_process(session: zenoh.Session, impl: str) -> dict[str, float]:
     transport.core = core
     try:
         return {
-            RAW: per_sample_us(raw_echo(pub), sample),
-            FLOOR: per_sample_us(floor_echo(pub), sample),
-            SDK: per_sample_us(transport._on_sample("in"), sample),
+            RAW: per_sample_us(raw_echo(pub), sample, n),
+            FLOOR: per_sample_us(floor_echo(pub), sample, n),
+            SDK: per_sample_us(transport._on_sample("in", SDK_IN), sample, n),
         }
     finally:
         core.stop()

@@ -62,25 +62,13 @@ def test_a_stop_then_start_swap_kills_the_old_node_at_its_stop_deadline(system, 
     """runtime.yaml ``stop_deadline: {direct: 0}``: the cold swap to ``filtered`` exports
     direct's state (with the sink's rewire, one batch), kills direct at once (no grace
     period: a stop, not a failure), then starts filtered; the sink's output goes through it."""
-    from rra_agent.node import decode_data
-
     pkg = package_copy(tmp_path)
     edit_yaml(pkg / "runtime.yaml",
               lambda d: d["replacement"].update(stop_deadline={"direct": 0}))  # fmt: skip
     sys_ = system(pkg)
     direct_pid = sys_.node(sys_.status, "direct")["pid"]
-    out: list[dict] = []
-    sub = sys_.client.session.declare_subscriber(
-        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
-    )
-    try:
-        sys_.set_level(7.0)
-        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap to filtered")
-        assert sys_.node(st, "direct")["state"] == "STOPPED" and not pid_alive(direct_pid)
-        wait_until(lambda: any(o.get("value", 0) >= 100 for o in out), 10,
-                   "samples through filtered")  # fmt: skip
-    finally:
-        sub.undeclare()
+    st = swap_to_filtered(sys_)
+    assert sys_.node(st, "direct")["state"] == "STOPPED" and not pid_alive(direct_pid)
     states = [e for e in sys_.events() if isinstance(e, m.NodeState) and e.node == "direct"]
     stopping = next(e for e in states if e.state == "STOPPING")
     stopped = next(e for e in states if e.state == "STOPPED")
@@ -92,6 +80,24 @@ def test_a_stop_then_start_swap_kills_the_old_node_at_its_stop_deadline(system, 
     assert plan.index(next(p for p in plan if p.startswith("export_state direct"))) < plan.index(
         next(p for p in plan if p.startswith("stop direct"))
     ), plan
+
+
+def swap_to_filtered(sys_) -> dict:
+    """Level 7 swaps ``filtered`` in; the status once the sink's output goes through it."""
+    from rra_agent.node import decode_data
+
+    out: list[dict] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
+    )
+    try:
+        sys_.set_level(7.0)
+        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap to filtered")
+        wait_until(lambda: any(o["value"] >= 100 for o in ticks(out)), 10,
+                   "samples through filtered")  # fmt: skip
+    finally:
+        sub.undeclare()
+    return st
 
 
 def test_crashed_node_restarts_with_its_current_wiring(system):
@@ -230,8 +236,6 @@ def test_a_swap_inside_a_component_container(system, tmp_path):
     """direct, filtered (standby) and sink in one container: the Run-time Resolution Engine
     swaps and rewires them as it does processes; the switch is an activation inside the
     same process, and the sink's output goes through filtered."""
-    from rra_agent.node import decode_data
-
     pkg = package_copy(tmp_path)
     edit_yaml(pkg / "runtime.yaml",
               lambda d: d["replacement"].update(components={"filtered": "standby"}))  # fmt: skip
@@ -246,19 +250,9 @@ def test_a_swap_inside_a_component_container(system, tmp_path):
     st = sys_.status
     box = {sys_.node(st, n)["pid"] for n in ("direct", "filtered", "sink")}
     assert len(box) == 1 and sys_.node(st, "source")["pid"] not in box
-    out: list[dict] = []
-    sub = sys_.client.session.declare_subscriber(
-        K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
-    )
-    try:
-        sys_.set_level(7.0)
-        st = sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the standby switch")
-        assert {sys_.node(st, n)["pid"] for n in ("filtered", "sink")} == box
-        assert sys_.ctl("filtered", m.Describe()).result["active"] is True
-        wait_until(lambda: any(o["value"] >= 100 for o in ticks(out)), 10,
-                   "samples through filtered")  # fmt: skip
-    finally:
-        sub.undeclare()
+    st = swap_to_filtered(sys_)
+    assert {sys_.node(st, n)["pid"] for n in ("filtered", "sink")} == box
+    assert sys_.ctl("filtered", m.Describe()).result["active"] is True
 
 
 def test_random_bytes_on_every_key_crash_nothing(system):

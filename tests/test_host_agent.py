@@ -525,6 +525,34 @@ def test_components_in_a_container_share_a_process_and_keep_their_own_endpoints(
         outs.close()
 
 
+def test_a_batch_to_a_container_is_answered_as_each_component_would(agent, procs):
+    """One `NodeBatch` query to container "box" (what the Run-time Resolution Engine sends
+    for a switch's requests to several of its components): each call is handled by its
+    component as its own endpoint would (its own bounds), the replies come in order, and a
+    call to a component the container does not hold is refused alone."""
+    _, client, watch = agent
+    start(client, watch, procs, container_spec("c_relay1", 1.0))
+    start(client, watch, procs, container_spec("c_relay2", 2.0))
+    batch = m.NodeBatch(calls=[
+        m.NodeCall(node="c_relay1", request=m.SetParams(params={"offset": 3.0})),
+        m.NodeCall(node="c_relay2", request=m.SetParams(params={"offset": 99.0})),  # > max
+        m.NodeCall(node="c_faulty", request=m.Deactivate()),  # not loaded
+        m.NodeCall(node="c_relay2", request=m.Deactivate()),
+    ])  # fmt: skip
+    codec = m.Codec[m.Reply](m.Reply)
+    [answer] = [codec.decode(r.ok.payload.to_bytes())
+                for r in client.session.get(K.node_ctl("box"), payload=m.Codec[m.ContainerRequest](
+                    m.ContainerRequest).encode(batch), timeout=5) if r.ok is not None]  # fmt: skip
+    assert isinstance(answer, m.Ok) and isinstance(answer.result, list)
+    replies = [msgspec.convert(r, m.Reply) for r in answer.result]
+    assert [type(r).__name__ for r in replies] == ["Ok", "Err", "Err", "Ok"], replies
+    assert replies[2].code == "unknown"  # type: ignore[union-attr]
+    one = ok(client.node("c_relay1", m.Describe()))
+    two = ok(client.node("c_relay2", m.Describe()))
+    assert one["params"]["offset"] == 3.0 and one["active"] is True  # type: ignore[index]
+    assert two["params"]["offset"] == 2.0 and two["active"] is False  # type: ignore[index]
+
+
 def test_a_failing_component_does_not_take_its_neighbours_down(agent, procs):
     """c_faulty raises in every callback and c_badstart in on_start: both are counted and
     reported (c_badstart FATAL, nothing else), c_relay2 in the same process relays on."""

@@ -253,6 +253,9 @@ def test_a_swap_inside_a_component_container(system, tmp_path):
     st = swap_to_filtered(sys_)
     assert {sys_.node(st, n)["pid"] for n in ("filtered", "sink")} == box
     assert sys_.ctl("filtered", m.Describe()).result["active"] is True
+    # the requests of the switch to components of the box went as batches to the container
+    stats = sys_.ctl("box", m.Stats())
+    assert isinstance(stats, m.Ok) and stats.result["counters"].get("batched", 0) >= 2, stats
 
 
 def test_random_bytes_on_every_key_crash_nothing(system):

@@ -192,8 +192,9 @@ def run_case(n: int, strategy: str, repeat: int, containers: int = 0, shared: bo
                 lambda: list(session.liveliness().get(keys.host_alive("local"), timeout=0.5)),
                 20, "the host agent",
             )  # fmt: skip
+            boxes = {c.name: c.container for c in dep.configured.components if c.container}
             act = ZenohActuator(session, keys, start_timeout=120.0, stop_timeout=60.0,
-                                request_timeout=10.0)  # fmt: skip
+                                request_timeout=10.0, container_of=boxes)  # fmt: skip
             pkg = dep.package
             hot = [c.name for c in dep.configured.components if pkg.runtime.replacement.hot(c.name)]
             ex = Executor(act, keys, pkg.runtime.replacement, default_host="local",

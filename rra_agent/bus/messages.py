@@ -382,7 +382,22 @@ class UnloadNode(Msg, tag="unload_node"):
     node: str
 
 
-ContainerRequest = LoadNode | UnloadNode | Ping | Stats | Describe
+class NodeCall(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """One component's control request inside a `NodeBatch`."""
+
+    node: str
+    request: NodeRequest
+
+
+class NodeBatch(Msg, tag="node_batch"):
+    """Control requests to several components of this container in one query (a switch's
+    batch): each is answered as the component's own control endpoint would answer it, and
+    the reply is ``Ok`` with the list of those replies, in order."""
+
+    calls: list[NodeCall]
+
+
+ContainerRequest = LoadNode | UnloadNode | NodeBatch | Ping | Stats | Describe
 
 
 # ---- engine control ---------------------------------------------------------------------

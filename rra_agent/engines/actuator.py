@@ -58,8 +58,12 @@ class ZenohActuator:
         request_timeout: float = 2.0,
         on_node_state: Any = None,
         reachable: Callable[[str], bool] = lambda host: True,
+        container_of: Mapping[str, str] | None = None,
     ) -> None:
         self.session = session
+        #: The component container each contained component runs in (from the model):
+        #: several requests of one batch to one container travel as one `NodeBatch`.
+        self.container_of = dict(container_of or {})
         self.keys = keys
         self.client = BusClient(None, keys.system, session=session)  # type: ignore[arg-type]
         self.start_timeout = start_timeout
@@ -257,6 +261,20 @@ class ZenohActuator:
         (answered ``Ok`` with no result here)."""
         if trace.enabled():
             trace.mark("engine:control", ",".join(c.label for c in batch))
+        groups = self._by_container(batch)
+        grouped = {i for indices in groups.values() for i in indices}
+        batches = {
+            box: self.session.get(
+                self.keys.node_ctl(box),
+                payload=_ANY.encode(m.NodeBatch(calls=[
+                    m.NodeCall(node=batch[i].spec.name, request=self._fenced(batch[i].request))
+                    for i in indices
+                ])),
+                timeout=self.request_timeout,
+                **CONTROL_QOS,
+            )
+            for box, indices in groups.items()
+        }  # fmt: skip
         handlers = [
             self.session.get(
                 self.keys.node_ctl(c.spec.name),
@@ -264,14 +282,18 @@ class ZenohActuator:
                 timeout=self.request_timeout,
                 **CONTROL_QOS,
             )
-            if self.reachable(c.spec.host)
+            if self.reachable(c.spec.host) and i not in grouped
             else None
-            for c in batch
+            for i, c in enumerate(batch)
         ]
         replies = [
             self._first_reply(h, c) if h is not None else self._defer(c)
             for h, c in zip(handlers, batch, strict=True)
         ]
+        for box, indices in groups.items():
+            for i, rep in zip(indices, self._batch_replies(batches[box], box, len(indices)),
+                              strict=True):  # fmt: skip
+                replies[i] = rep
         if trace.enabled():
             trace.mark("engine:replied", ",".join(c.label for c in batch))
         if any(isinstance(r, m.Err) and r.code == "stale_fence" for r in replies):
@@ -283,11 +305,35 @@ class ZenohActuator:
         self._update(list(latest.values()))
         return replies
 
+    def _by_container(self, batch: list[Ctl]) -> dict[str, list[int]]:
+        """Indices of the requests that go to one container together (two or more to the
+        same container of a reachable host), by container."""
+        groups: dict[str, list[int]] = {}
+        for i, c in enumerate(batch):
+            box = self.container_of.get(c.spec.name)
+            if box is not None and self.reachable(c.spec.host):
+                groups.setdefault(box, []).append(i)
+        return {box: indices for box, indices in groups.items() if len(indices) > 1}
+
+    def _batch_replies(self, handler: Any, box: str, n: int) -> list[m.Reply]:
+        """The ``n`` replies of a `NodeBatch` to container ``box`` (each the same `Err` if
+        the container did not answer or answered something else)."""
+        reply = self._first_reply(handler, f"container {box}")
+        if isinstance(reply, m.Ok) and isinstance(reply.result, list) and len(reply.result) == n:
+            try:
+                return [msgspec.convert(r, m.Reply) for r in reply.result]
+            except msgspec.ValidationError as e:
+                reply = m.Err(message=f"malformed reply of container {box}: {e}", code="malformed")
+        if isinstance(reply, m.Ok):
+            reply = m.Err(message=f"container {box} answered {n} requests wrongly",
+                          code="malformed")  # fmt: skip
+        return [reply] * n
+
     def _defer(self, c: Ctl) -> m.Reply:
         self.deferred.append((c.spec.host, f"{c.request.__struct_config__.tag} {c.spec.name}"))
         return m.Ok()
 
-    def _first_reply(self, handler: Any, c: Ctl) -> m.Reply:
+    def _first_reply(self, handler: Any, c: Ctl | str) -> m.Reply:
         out: m.Reply | None = None
         for reply in handler:  # ends when the query is complete (or timed out)
             if out is not None:
@@ -299,9 +345,9 @@ class ZenohActuator:
                     out = m.Err(message=f"malformed reply: {e}", code="malformed")
             elif reply.err is not None:
                 out = m.Err(message=reply.err.payload.to_string(), code="zenoh")
+        who = c if isinstance(c, str) else f"node {c.spec.name}"
         return out or m.Err(
-            message=f"no reply from node {c.spec.name} within {self.request_timeout:g} s",
-            code="no_reply",
+            message=f"no reply from {who} within {self.request_timeout:g} s", code="no_reply"
         )
 
     def _host(self, spec: m.NodeSpec, request: m.HostRequest, what: str) -> Any:

@@ -792,7 +792,13 @@ class ResolutionEngine(EngineProcess):
         log = self.run_dir / "events.jsonl" if self.run_dir else None
         self.sink = EventSink(session, self.keys.events, log)
         self.actuator = ZenohActuator(
-            session, self.keys, start_timeout=self.start_timeout, reachable=self.reachable
+            session,
+            self.keys,
+            start_timeout=self.start_timeout,
+            reachable=self.reachable,
+            container_of={
+                c.name: c.container for c in self.dep.configured.components if c.container
+            },
         )
         self.present = {
             str(reply.ok.key_expr).rsplit("/", 1)[-1]

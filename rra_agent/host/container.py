@@ -39,7 +39,13 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Counters, too_large
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import ZenohTransport, beat_period, control_callback, open_session
+from rra_agent.bus.runtime import (
+    CONTROL_QOS,
+    ZenohTransport,
+    beat_period,
+    control_callback,
+    open_session,
+)
 from rra_agent.host.heartbeat import Heartbeat
 from rra_agent.models.system import coerce_parameter
 from rra_agent.node import NodeCore, NodeError, load_node_class
@@ -139,8 +145,30 @@ class ContainerRuntime:
         if isinstance(req, m.Ping):  # answered here: a probe must not wait behind a load
             query.reply(query.key_expr, _REPLY.encode(m.Ok(result={"pid": os.getpid()})))
             return
+        if isinstance(req, m.NodeBatch):  # here too, as each component's endpoint would
+            replies = [msgspec.to_builtins(self._call(c)) for c in req.calls]
+            query.reply(query.key_expr, _REPLY.encode(m.Ok(result=replies)), **CONTROL_QOS)
+            return
         self._pending.append((query, req))  # list.append is atomic; the loop drains it
         self._wake()
+
+    def _call(self, call: m.NodeCall) -> m.Reply:
+        """One request of a `NodeBatch`, handled by its component's core (under its lock,
+        on this Zenoh thread, as its own control endpoint does)."""
+        loaded = self.loaded.get(call.node)
+        if loaded is None:
+            return m.Err(message=f"no component {call.node!r} in {self.spec.name}",
+                         code="unknown")  # fmt: skip
+        core = loaded.core
+        core.counters.received += 1
+        self.counters.bump("batched")
+        reply = core.handle(call.request)
+        request = call.request
+        if core.stop_requested.is_set() or (
+            isinstance(request, m.SetParams) and "rate_hz" in request.params
+        ):
+            self._wake()
+        return reply
 
     def _serve_pending(self) -> None:
         while self._pending:
@@ -161,7 +189,8 @@ class ContainerRuntime:
                 self._unload(name)
                 return m.Ok()
             case m.Stats():
-                return m.Ok(result={"loaded": sorted(self.loaded), "pid": os.getpid()})
+                return m.Ok(result={"loaded": sorted(self.loaded), "pid": os.getpid(),
+                                    "counters": dict(self.counters.extra)})  # fmt: skip
             case m.Describe():
                 return m.Ok(result={"name": self.spec.name, "loaded": sorted(self.loaded)})
         return m.Err(message=f"unsupported request {type(req).__name__}", code="refused")

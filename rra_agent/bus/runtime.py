@@ -120,12 +120,18 @@ def control_callback(core: NodeCore, wake: Callable[[], None]):
                 core.counters.received += 1
                 reply = core.handle(request)
         query.reply(query.key_expr, _REPLY.encode(reply), **CONTROL_QOS)
-        if core.stop_requested.is_set() or (
-            isinstance(request, m.SetParams) and "rate_hz" in request.params
-        ):
+        if must_wake(core, request):
             wake()
 
     return callback
+
+
+def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:
+    """Whether the main loop running ``core`` must wake after ``request``: to see the stop
+    flag, or to re-read ``rate_hz``."""
+    return core.stop_requested.is_set() or (
+        isinstance(request, m.SetParams) and "rate_hz" in request.params
+    )
 
 
 class NoPeer(RraError):

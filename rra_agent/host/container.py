@@ -44,6 +44,7 @@ from rra_agent.bus.runtime import (
     ZenohTransport,
     beat_period,
     control_callback,
+    must_wake,
     open_session,
 )
 from rra_agent.host.heartbeat import Heartbeat
@@ -163,10 +164,7 @@ class ContainerRuntime:
         core.counters.received += 1
         self.counters.bump("batched")
         reply = core.handle(call.request)
-        request = call.request
-        if core.stop_requested.is_set() or (
-            isinstance(request, m.SetParams) and "rate_hz" in request.params
-        ):
+        if must_wake(core, call.request):
             self._wake()
         return reply
 

@@ -512,14 +512,7 @@ class Executor:
         def undo() -> None:
             self.actuator.start(specs)
 
-        def do() -> None:
-            if deadlines and any(s.name in deadlines for s in specs):
-                self.actuator.stop(specs, {s.name: deadlines[s.name] for s in specs
-                                           if s.name in deadlines})  # fmt: skip
-            else:
-                self.actuator.stop(specs)
-
-        tx.run("stop", _names(specs), do, undo)
+        tx.run("stop", _names(specs), lambda: self.actuator.stop(specs, deadlines), undo)
         for s in specs:
             self.running.pop(s.name, None)
 

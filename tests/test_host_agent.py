@@ -685,7 +685,9 @@ def test_a_container_s_members_load_only_once_its_token_is_routed(tmp_path):
     seen: list[tuple[str, State, int | None]] = []
     agent.members.on_container = lambda name, state, pid, now: seen.append((name, state, pid))
 
-    def moved(state: State, previous: State) -> None:
+    def moved(state: State, previous: State) -> None:  # as the supervisor moves it
+        box = agent.supervisor.procs["box"]
+        box.state, box.pid = state, 42
         agent._on_transition(Transition("box", "h1", previous, state, 0.0, 42, 0, ""))
 
     moved(State.STARTING, State.STOPPED)

@@ -122,10 +122,8 @@ class HostAgent:
         #: Components running inside this host's containers (`host/container.py`).
         self.members = Members(host, self._send_container, self._on_transition)
         #: Containers whose liveliness token this agent's session has seen since they
-        #: started, and those RUNNING that wait for it (their pid): see
-        #: `_container_transition`.
+        #: started: see `_container_transition`.
         self._routed: set[str] = set()
-        self._awaiting_token: dict[str, int | None] = {}
         self.loop = MainLoop(clock)
         self.loop.on_wake = self._reap
         self.counters = Counters()
@@ -253,11 +251,11 @@ class HostAgent:
         if name in self.members.members:
             self.members.on_ready(name, self.clock())
             return
-        if name in self.catalog.containers:
+        if name in self.catalog.containers and name not in self._routed:
             self._routed.add(name)
-            waiting = self._awaiting_token.pop(name, None)
-            if waiting is not None:
-                self.members.on_container(name, State.RUNNING, waiting, self.clock())
+            box = self.supervisor.procs.get(name)
+            if box is not None and box.state == State.RUNNING:  # its members waited for this
+                self.members.on_container(name, State.RUNNING, box.pid, self.clock())
         self.supervisor.on_ready(name, self.clock())
 
     def _container_transition(self, t: Transition) -> None:
@@ -268,10 +266,8 @@ class HostAgent:
         containers starting at once)."""
         if t.state != State.RUNNING:
             self._routed.discard(t.node)
-            self._awaiting_token.pop(t.node, None)
         elif t.node not in self._routed:
-            self._awaiting_token[t.node] = t.pid
-            return
+            return  # `_on_ready` tells the members when the token comes
         self.members.on_container(t.node, t.state, t.pid, t.now)
 
     # ---- containers ------------------------------------------------------------------

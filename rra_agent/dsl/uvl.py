@@ -21,7 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, get_args
 
 import msgspec
 from lark import Lark, Token, Tree, v_args
@@ -391,10 +391,11 @@ def _describe(e: Expr) -> str:
     return "a condition"
 
 
-#: The grammar's group keywords and operators, as the model's Literal values.
-_GROUP_KEYWORDS: tuple[GroupKind, ...] = ("mandatory", "optional", "alternative", "or")
-_COMPARE_OPS: tuple[CompareOp, ...] = ("==", "!=", "<", "<=", ">", ">=")
-_ARITH_OPS: tuple[ArithOp, ...] = ("+", "-", "*", "/")
+#: The grammar's group keywords and operators: the model's Literal values (a cardinality
+#: group has no keyword).
+_GROUP_KEYWORDS: tuple[GroupKind, ...] = tuple(k for k in get_args(GroupKind) if k != "cardinality")
+_COMPARE_OPS: tuple[CompareOp, ...] = get_args(CompareOp)
+_ARITH_OPS: tuple[ArithOp, ...] = get_args(ArithOp)
 
 _Word = TypeVar("_Word", bound=str)
 

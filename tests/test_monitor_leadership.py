@@ -101,3 +101,24 @@ def test_a_standby_resolution_engine_keeps_a_selection_without_waking_its_loop()
     proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
     proc._on_selection(sample)  # type: ignore[arg-type]
     assert proc.loop.inbox.qsize() == 1  # the leader acts on it
+
+
+def test_the_leading_adaptation_engine_drops_other_selections_without_waking_its_loop() -> None:
+    """The leader follows nobody: a selection fenced by another replica (a forged one, a
+    deposed leader's) is dropped on the Zenoh thread. Posted, each one (a hostile client's
+    forgeries, many a second) kept the next measurement from being evaluated inline. A
+    standby still follows its leader's selections on its main loop."""
+    from conftest import RELAY
+
+    from rra_agent.engines.adaptation import AdaptationProcess
+
+    proc = AdaptationProcess(deploy(RELAY), BusConfig(), name="adaptation-a")
+    fence = m.Fence(epoch=9, leader="mallory")
+    sel = m.Selection(seq=1, stamp=1.0, deployment=[], features=["A"], cv={}, fence=fence)
+    sample = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: msgspec.msgpack.encode(sel)))
+    proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
+    proc._on_selection(sample)  # type: ignore[arg-type]
+    assert proc.loop.inbox.empty()
+    proc.election = SimpleNamespace(leading=False)  # type: ignore[assignment]
+    proc._on_selection(sample)  # type: ignore[arg-type]
+    assert proc.loop.inbox.qsize() == 1  # a standby checks it against its leader

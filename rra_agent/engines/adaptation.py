@@ -119,7 +119,13 @@ class AdaptationProcess(EngineProcess):
             msg = _SEL.decode(raw)
         except (msgspec.DecodeError, msgspec.ValidationError):
             return
-        if isinstance(msg, m.Selection) and msg.fence is not None and msg.fence.leader != self.name:
+        if not isinstance(msg, m.Selection) or msg.fence is None or msg.fence.leader == self.name:
+            return
+        # The leader follows nobody: it drops the others' selections (forged ones, or a
+        # deposed leader's) here rather than waking its main loop for each, which would
+        # keep the next measurement from being evaluated inline. A replica stepping down
+        # meanwhile catches up with its new leader's next selection (a heartbeat at least).
+        if not self.leading:
             self.loop.post(lambda: self._follow(msg))
 
     # ---- resuming and following (main thread) -------------------------------------------

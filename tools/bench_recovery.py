@@ -333,9 +333,9 @@ def main() -> int:
         hog = subprocess.Popen([sys.executable, str(Path(__file__).parent / "cpuhog.py")])
         print(f"load: tools/cpuhog.py, {os.cpu_count()} busy loops")
     rows, traces, breakdown = [], {}, {}
+    chosen = args.scheduling or ["fifo", "none"]
     try:
         with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
-            chosen = args.scheduling or ["fifo", "none"]
             variants = {v: scheduled(SCENARIO.parent, Path(tmp) / v, VARIANTS[v]) for v in chosen}
             for name in args.only or list(STRATEGIES):
                 for variant in chosen:
@@ -355,7 +355,7 @@ def main() -> int:
     )
     print(
         "scheduling of the critical path: "
-        + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in args.scheduling or ["fifo", "none"])
+        + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in chosen)
     )
     print_table(
         ["strategy", "scheduling", "runs", "received ms (median / p99)",

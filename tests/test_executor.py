@@ -12,8 +12,16 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.core import resolution as r
+from rra_agent.core.effect import effective_model
 from rra_agent.core.features import complete_deployment
-from rra_agent.engines.executor import Ctl, Executor, StepFailed, spec_for
+from rra_agent.engines.executor import (
+    Ctl,
+    Executor,
+    StepFailed,
+    describe_step,
+    plan_units,
+    spec_for,
+)
 from rra_agent.models.loader import load_package
 from rra_agent.models.resolution import Replacement, StateTransfer
 from rra_agent.models.system import SystemModel
@@ -27,6 +35,8 @@ class FakeActuator:
         self.calls: list[tuple] = []
         self.batches: list[int] = []
         self.fail_on: set[tuple[str, str]] = set()
+        #: (node, implementation) that cannot start (a restart with another one can).
+        self.broken: set[tuple[str, str]] = set()
         self.states: dict[str, Any] = {"controller": {"integral": 1.5}}
         self.deadlines: dict[str, float] = {}
 
@@ -36,8 +46,16 @@ class FakeActuator:
             raise StepFailed(f"{op} {name} failed")
 
     def start(self, specs: list[NodeSpec]) -> None:
+        failed = {}
         for s in specs:
-            self._do("start", s.name, s.active, s.state)
+            try:
+                self._do("start", s.name, s.active, s.state)
+                if (s.name, s.implementation) in self.broken:
+                    raise StepFailed(f"start {s.name} failed: implementation broken")
+            except StepFailed as e:
+                failed[s.name] = str(e)
+        if failed:
+            raise StepFailed("start failed", failed)
 
     def stop(self, specs: list[NodeSpec], deadlines: dict[str, float] | None = None) -> None:
         for s in specs:
@@ -253,21 +271,22 @@ def two_components(v: float, w: int) -> SystemModel:
     )
 
 
-def test_parameters_and_their_rollback():
+def test_parameters_of_two_components_are_applied_each_on_its_own():
+    """Two parameter changes depend on nothing: the one refused is reported and undone,
+    the other stays applied (it is in effect)."""
     sysm, tgt = two_components(1.0, 1), two_components(2.0, 5)
     ex, act = make("stop-then-start")
     deploy(ex, act, sysm)
     act.fail_on = {("params", "b")}
     out = ex.execute(r.diff(sysm, tgt))
-    assert out.rolled_back
-    assert act.calls == [
-        ("params", "a", {"v": 2.0}),
-        ("params", "b", {"w": 5}),
-        ("params", "a", {"v": 1.0}),
-    ]
-    assert ex.running["a"].params == {"v": 1.0}
+    assert not out.ok and out.partial and out.rolled_back
+    assert act.calls == [("params", "a", {"v": 2.0}), ("params", "b", {"w": 5})]
+    assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 1}
+    [failure] = out.failures
+    assert failure.parameters == {"b"} and not failure.structure
+    assert failure.steps == ["set b w=5"] and "params b failed" in failure.error
     act.fail_on = set()
-    assert ex.execute(r.diff(sysm, tgt)).ok
+    assert ex.execute(r.diff(effective_model(sysm, tgt, (), {"b"}), tgt)).ok
     assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 5}
 
 
@@ -390,3 +409,98 @@ def test_a_hot_standby_swapped_out_stays_active_for_the_way_back(quad):
     assert ex.execute(r.diff(target("Proploss"), target("Standard"))).ok
     assert [c[0] for c in act.calls] == ["rewire"], act.calls
     assert set(ex.standby) == {"proploss_controller"}
+
+
+# ---- plans that degrade, not block ---------------------------------------------------------
+AGV = msgspec.convert(
+    {
+        "system": "agv",
+        "components": [
+            {"name": "lidar", "implementation": "x.Lidar", "optional": True, "binding": "runtime",
+             "ports": [{"name": "scan", "direction": "publish", "type": "Scan"}]},
+            {"name": "camera", "implementation": "x.Camera", "optional": True,
+             "binding": "runtime", "ports": [{"name": "scan", "direction": "publish",
+                                              "type": "Scan"}]},
+            {"name": "perception", "implementation": "x.Perception",
+             "ports": [{"name": "scan", "direction": "subscribe", "type": "Scan"},
+                       {"name": "obstacles", "direction": "publish", "type": "Obstacles"}]},
+            {"name": "motion", "implementation": "x.Motion",
+             "parameters": {"max_speed": {"type": "float", "value": 1.4}},
+             "ports": [{"name": "obstacles", "direction": "subscribe", "type": "Obstacles"}]},
+            {"name": "beacon", "implementation": "x.Beacon", "optional": True,
+             "binding": "runtime"},
+        ],
+        "connections": [
+            {"from": "lidar.scan", "to": "perception.scan", "optional": True,
+             "binding": "runtime"},
+            {"from": "camera.scan", "to": "perception.scan", "optional": True,
+             "binding": "runtime"},
+            {"from": "perception.obstacles", "to": "motion.obstacles"},
+        ],
+    },
+    SystemModel,
+)  # fmt: skip
+
+
+def agv(camera: bool, human_zone: bool) -> SystemModel:
+    """The AGV with the lidar or the camera feeding perception, and in the human zone the
+    speed limit and the beacon."""
+    sensor = "camera" if camera else "lidar"
+    comps = [
+        c if c.name != "motion" or not human_zone
+        else msgspec.structs.replace(c, parameters={
+            "max_speed": msgspec.structs.replace(c.parameters["max_speed"], value=0.5)})
+        for c in AGV.components
+        if c.name in ("perception", "motion", sensor) or (human_zone and c.name == "beacon")
+    ]  # fmt: skip
+    conns = [c for c in AGV.connections if c.source.split(".")[0] in ("perception", sensor)]
+    return msgspec.structs.replace(AGV, components=comps, connections=conns)
+
+
+def test_a_component_that_cannot_start_does_not_hold_back_the_speed_limit():
+    """The warehouse AGV enters the human zone while switching to a camera that is not
+    plugged in: the camera's swap (its start, perception's rewire, the lidar's stop) fails
+    and is undone as one unit; the speed limit and the beacon are applied."""
+    ex, act = make("stop-then-start")
+    deploy(ex, act, agv(camera=False, human_zone=False))
+    act.fail_on = {("start", "camera")}
+    before, after = agv(camera=False, human_zone=False), agv(camera=True, human_zone=True)
+    out = ex.execute(r.diff(before, after))
+    assert not out.ok and out.partial and out.rolled_back
+    assert ex.running["motion"].params["max_speed"] == 0.5
+    assert "beacon" in ex.running and "lidar" in ex.running and "camera" not in ex.running
+    assert ex.running["perception"].ports["scan"].keys == [K.data("lidar/scan")]
+    [failure] = out.failures
+    assert failure.structure == {"lidar", "camera", "perception"}
+    assert failure.nodes == {"camera": "start camera failed"}
+    effective = effective_model(before, after, failure.structure, failure.parameters)
+    assert {c.name for c in effective.components} == set(ex.running)
+    assert r.diff(effective, after).steps  # the camera is still to come
+
+
+def test_units_of_a_plan_follow_its_dependencies():
+    ex, act = make("stop-then-start")
+    deploy(ex, act, agv(camera=False, human_zone=False))
+    plan = r.diff(agv(camera=False, human_zone=False), agv(camera=True, human_zone=True))
+    units = plan_units(plan.steps, ex.running, K.data)
+    by_unit: dict[int, set[str]] = {}
+    for step, u in zip(plan.steps, units, strict=True):
+        by_unit.setdefault(u, set()).add(describe_step(step))
+    assert sorted(map(sorted, by_unit.values())) == [
+        ["rewire perception.scan", "swap lidar -> camera"],
+        ["set motion max_speed=0.5"],
+        ["start beacon"],
+    ]
+
+
+def test_an_unavailable_component_is_not_tried():
+    ex, act = make("stop-then-start")
+    deploy(ex, act, agv(camera=False, human_zone=False))
+    out = ex.execute(
+        r.diff(agv(camera=False, human_zone=False), agv(camera=True, human_zone=True)),
+        skip={"camera"},
+    )
+    assert not any(c[:2] == ("start", "camera") for c in act.calls), act.calls
+    assert ("params", "motion", {"max_speed": 0.5}) in act.calls
+    [failure] = out.failures
+    assert failure.skipped and failure.nodes == {"camera": "unavailable"}

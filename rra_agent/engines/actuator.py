@@ -39,7 +39,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.runtime import CONTROL_QOS
-from rra_agent.engines.executor import Ctl, StepFailed
+from rra_agent.engines.executor import Ctl, StepFailed, apply_request
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _ANY = m.Codec[Any](Any)
@@ -131,24 +131,31 @@ class ZenohActuator:
     def _since(self, node: str, mark: int) -> list[m.NodeState]:
         return [s for q, s in self.history.get(node, ()) if q > mark]
 
-    def _wait(self, names: list[str], mark: int, done, failed, timeout: float, what: str) -> None:
-        """Wait until ``done(events)`` for every node, or raise on ``failed``/timeout."""
+    def _wait(
+        self, names: list[str], mark: int, done, failed, timeout: float, what: str
+    ) -> dict[str, str]:
+        """Wait until ``done(events)`` for every node, or until it ``failed`` or the timeout
+        passed; the nodes that did not make it, and why (empty: all did)."""
         deadline = time.monotonic() + timeout
+        out: dict[str, str] = {}
         with self.cond:
             while True:
                 pending = []
                 for n in names:
+                    if n in out:
+                        continue
                     evs = self._since(n, mark)
                     bad = failed(evs)
                     if bad is not None:
-                        raise StepFailed(f"{what} {n}: {bad.state} ({bad.reason})")
-                    if not done(evs):
+                        out[n] = f"{bad.state} ({bad.reason})" if bad.reason else bad.state
+                    elif not done(evs):
                         pending.append(n)
                 if not pending:
-                    return
+                    return out
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise StepFailed(f"{what} {', '.join(pending)}: timed out after {timeout:g} s")
+                    out.update((n, f"{what} timed out after {timeout:g} s") for n in pending)
+                    return out
                 self.cond.wait(left)
 
     def _fenced(self, request: Any) -> Any:
@@ -190,21 +197,23 @@ class ZenohActuator:
         return out
 
     def start(self, specs: list[m.NodeSpec]) -> None:
+        """Start the nodes at once; `StepFailed` naming those that did not become ready
+        (each stopped again, so no restart loop is left behind); the others run."""
         specs = self._reachable(specs, "start")
         trace.mark("engine:start", ",".join(s.name for s in specs))
         mark = self._mark()
-        sent: list[m.NodeSpec] = []
+        failed: dict[str, str] = {}
         waiting: list[m.NodeSpec] = []
-        try:
-            for spec in specs:
+        for spec in specs:
+            try:
                 result = self._host(spec, m.StartNode(spec=spec), "start")
-                sent.append(spec)
-                if not (
-                    isinstance(result, dict)
-                    and result.get("already")
-                    and result.get("state") == "RUNNING"
-                ):
-                    waiting.append(spec)
+            except (StepFailed, NoReply) as e:
+                failed[spec.name] = str(e)
+                continue
+            already = isinstance(result, dict) and result.get("already")
+            if not (already and result.get("state") == "RUNNING"):
+                waiting.append(spec)
+        failed.update(
             self._wait(
                 [s.name for s in waiting],
                 mark,
@@ -219,10 +228,12 @@ class ZenohActuator:
                 timeout=self.start_timeout,
                 what="start",
             )
-            trace.mark("engine:started", ",".join(s.name for s in specs))
-        except (StepFailed, NoReply) as e:
-            self._abandon(sent)
-            raise StepFailed(str(e)) from None
+        )
+        trace.mark("engine:started", ",".join(s.name for s in specs))
+        if failed:
+            self._abandon([s for s in specs if s.name in failed])
+            first = next(iter(failed.items()))
+            raise StepFailed(f"start {first[0]}: {first[1]}", failed)
 
     def _abandon(self, specs: list[m.NodeSpec]) -> None:
         """Best-effort stop of nodes whose start failed (no restart loop left behind)."""
@@ -235,24 +246,31 @@ class ZenohActuator:
         trace.mark("engine:stop", ",".join(s.name for s in specs))
         mark = self._mark()
         waiting: list[m.NodeSpec] = []
+        failed: dict[str, str] = {}
         deadlines = deadlines or {}
-        try:
-            for spec in specs:
-                req = m.StopNode(node=spec.name, deadline=deadlines.get(spec.name))
+        for spec in specs:
+            req = m.StopNode(node=spec.name, deadline=deadlines.get(spec.name))
+            try:
                 result = self._host(spec, req, "stop")
-                if not (isinstance(result, dict) and result.get("already")):
-                    waiting.append(spec)
-        except NoReply as e:
-            raise StepFailed(str(e)) from None
-        self._wait(
-            [s.name for s in waiting],
-            mark,
-            done=lambda evs: any(e.state in TERMINAL for e in evs),
-            failed=lambda evs: None,
-            timeout=self.stop_timeout,
-            what="stop",
+            except (StepFailed, NoReply) as e:
+                failed[spec.name] = str(e)
+                continue
+            if not (isinstance(result, dict) and result.get("already")):
+                waiting.append(spec)
+        failed.update(
+            self._wait(
+                [s.name for s in waiting],
+                mark,
+                done=lambda evs: any(e.state in TERMINAL for e in evs),
+                failed=lambda evs: None,
+                timeout=self.stop_timeout,
+                what="stop",
+            )
         )
         trace.mark("engine:stopped", ",".join(s.name for s in specs))
+        if failed:
+            first = next(iter(failed.items()))
+            raise StepFailed(f"stop {first[0]}: {first[1]}", failed)
 
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         """All requests in flight at once (each get returns at once; then drain the replies),
@@ -300,8 +318,9 @@ class ZenohActuator:
             self.superseded = True
         latest: dict[str, m.NodeSpec] = {}
         for c, rep in zip(batch, replies, strict=True):
-            if isinstance(rep, m.Ok) and c.after is not None:
-                latest[c.spec.name] = c.after
+            if isinstance(rep, m.Ok) and c.inverse is not None:  # it changed the node
+                name = c.spec.name
+                latest[name] = apply_request(latest.get(name, c.spec), c.request)
         self._update(list(latest.values()))
         return replies
 

@@ -1,10 +1,20 @@
-"""Execute a reconfiguration `Plan` on the running system, transactionally.
+"""Execute a reconfiguration `Plan` on the running system: what can be applied is applied.
 
 The Run-time Resolution Engine computes a `Plan` (`rra_agent.core.resolution.diff`); this
 module carries it out through an `Actuator` (host agents and node control endpoints on the
-bus, or a fake in unit tests). Every action that changed the running system is recorded
-with its inverse; if a step fails (a node not ready in time, a control request refused),
-the inverses run in reverse order and the system is back in its previous configuration.
+bus, or a fake in unit tests).
+
+**Units.** A plan's steps form a dependency graph (`plan_units`): the steps that launch,
+stop or rewire one component belong together, a rewire to the output of a component started
+(or away from one stopped) in the same plan belongs with that start (or stop), and a
+component started with inputs from another one started in the same plan belongs with it. A
+parameter change of a running component depends on nothing. Each connected part is a
+*unit*: it is applied whole or not at all. Every action records its inverse in its unit; when
+an action fails (a node that does not start, a refused control request), that unit's
+executed actions are undone in reverse order at once and its remaining steps are skipped,
+while every other unit goes on. So a speed limit (a parameter) never waits for, or rolls back
+with, an unrelated camera that cannot start. The `Outcome` lists each failed unit, its steps
+and why; `rra_agent.core.effect` turns that into what is in effect.
 
 Phases (from the plan's canonical order). Independent actions of a phase go out together
 as one batch — all starts, all stops, all control requests of a phase — so a phase costs
@@ -35,8 +45,9 @@ about one round trip (or one process start), not one per node:
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Protocol
 
 import msgspec
@@ -51,15 +62,20 @@ from rra_agent.models.system import Component
 
 
 class StepFailed(RraError):
-    """An action on the running system failed; the plan is rolled back."""
+    """An action on the running system failed. ``nodes``: the nodes it failed for and why,
+    when only some of a batch failed (None: all of them)."""
+
+    def __init__(self, message: str, nodes: Mapping[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.nodes = dict(nodes) if nodes is not None else None
 
 
 class Actuator(Protocol):
     """What the executor needs from the running system."""
 
     def start(self, specs: list[NodeSpec]) -> None:
-        """Start the nodes and return once all are ready; raise StepFailed otherwise (after
-        stopping those of them that did start)."""
+        """Start the nodes and return once all are ready; raise StepFailed naming the nodes
+        that did not start (``nodes``), after stopping them; the others run."""
         ...
 
     def stop(self, nodes: list[NodeSpec], deadlines: Mapping[str, float] | None = None) -> None:
@@ -77,12 +93,13 @@ class Actuator(Protocol):
 
 @dataclass(frozen=True)
 class Ctl:
-    """One control request: the node's spec before and after it, and its inverse."""
+    """One control request to a node (its spec before it) and the request undoing it."""
 
     spec: NodeSpec
     request: m.NodeRequest
-    after: NodeSpec | None = None
     inverse: m.NodeRequest | None = None
+    #: The unit of the plan it belongs to (-1: none, it must succeed on its own).
+    unit: int = -1
 
     @property
     def label(self) -> str:
@@ -110,6 +127,23 @@ class StepRecord:
 
 
 @dataclass
+class UnitFailure:
+    """A unit of a plan that could not be applied (and was undone)."""
+
+    #: The unit's steps, as one line each (``start depth_camera``, ``rewire in of sink``).
+    steps: list[str]
+    #: Components whose launch, stop or wiring failed, and whose parameter change failed.
+    structure: frozenset[str]
+    parameters: frozenset[str]
+    error: str
+    #: The nodes that did not start (or stop), and why (their host agent's reason).
+    nodes: dict[str, str] = field(default_factory=dict)
+    #: The components that were not even tried (unavailable implementations).
+    skipped: bool = False
+    rollback_error: str = ""
+
+
+@dataclass
 class Outcome:
     ok: bool
     records: list[StepRecord] = field(default_factory=list)
@@ -119,6 +153,24 @@ class Outcome:
     seconds: float = 0.0
     #: Time from the start of execution until the swapped-in nodes were switched to.
     first_switch: float | None = None
+    #: The units that failed (each undone on its own); the others were applied.
+    failures: list[UnitFailure] = field(default_factory=list)
+    #: Steps of the plan applied, and in all.
+    applied: int = 0
+    steps: int = 0
+
+    @property
+    def partial(self) -> bool:
+        """Some of the plan was applied, some not."""
+        return bool(self.failures) and self.applied > 0
+
+    @property
+    def failed_structure(self) -> frozenset[str]:
+        return frozenset(c for f in self.failures for c in f.structure)
+
+    @property
+    def failed_parameters(self) -> frozenset[str]:
+        return frozenset(c for f in self.failures for c in f.parameters)
 
 
 def spec_for(
@@ -166,40 +218,123 @@ def spec_for(
     )
 
 
-def _names(specs: list[NodeSpec]) -> str:
+def _names(specs: Iterable[NodeSpec]) -> str:
     return ",".join(s.name for s in specs)
 
 
+# ---- the dependency graph of a plan ----------------------------------------------------------
+def _outputs(spec: NodeSpec) -> set[str]:
+    return {k for p in spec.ports.values() if p.direction == "publish" for k in p.keys}
+
+
+def plan_units(
+    steps: tuple[r.PlanStep, ...], running: Mapping[str, NodeSpec], data_key: Callable[[str], str]
+) -> list[int]:
+    """The unit of each step (an index per step; steps of one unit share it).
+
+    Steps are joined when they launch, stop, restart or rewire the same component; when a
+    rewire adds the output of a component launched by the plan, or drops the output of one
+    it stops; and when a launched component listens to the output of another one launched.
+    A parameter change of a running component stays on its own. ``running``: the specs of
+    the nodes that run now; ``data_key``: topic -> key.
+    """
+    parent = list(range(len(steps)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    def join(i: int, j: int) -> None:
+        parent[find(i)] = find(j)
+
+    owner: dict[str, int] = {}  # component -> a structural step of it
+    launched: dict[str, int] = {}  # key -> the step launching its producer
+    stopped: dict[str, int] = {}  # key -> the step stopping its producer
+    wants: list[tuple[int, set[str], set[str]]] = []  # (step, keys added, keys dropped)
+    for i, s in enumerate(steps):
+        for name in _structural(s):
+            if name in owner:
+                join(i, owner[name])
+            owner[name] = i
+        if isinstance(s, r.StartComponent | r.SwapComponent | r.SetImplementation):
+            for t in s.outputs.values():
+                launched[data_key(t)] = i
+            wants.append((i, {data_key(t) for ts in s.inputs.values() for t in ts}, set()))
+        if isinstance(s, r.StopComponent | r.SwapComponent) and s.component in running:
+            for k in _outputs(running[s.component]):
+                stopped[k] = i
+        if isinstance(s, r.Rewire):
+            new = {data_key(t) for t in s.topics}
+            spec = running.get(s.component)
+            old = set(spec.ports[s.port].keys) if spec and s.port in spec.ports else set()
+            wants.append((i, new - old, old - new))
+    for i, added, dropped in wants:
+        for k in added:
+            if k in launched and launched[k] != i:
+                join(i, launched[k])
+        for k in dropped:
+            if k in stopped:
+                join(i, stopped[k])
+    roots: dict[int, int] = {}
+    return [roots.setdefault(find(i), len(roots)) for i in range(len(steps))]
+
+
+def _structural(s: r.PlanStep) -> tuple[str, ...]:
+    """The components whose presence or wiring a step changes (none for parameters)."""
+    if isinstance(s, r.SwapComponent):
+        return (s.component, s.replacement)
+    if isinstance(s, r.SetParameters):
+        return ()
+    return (s.component,)
+
+
+def describe_step(s: r.PlanStep) -> str:
+    match s:
+        case r.SwapComponent(component=old, replacement=new):
+            return f"swap {old} -> {new}"
+        case r.StartComponent(component=c):
+            return f"start {c}"
+        case r.StopComponent(component=c):
+            return f"stop {c}"
+        case r.SetImplementation(component=c):
+            return f"restart {c} (implementation)"
+        case r.SetParameters(component=c, values=v):
+            return f"set {c} {', '.join(f'{k}={x!r}' for k, x in v.items())}"
+        case r.Rewire(component=c, port=p):
+            return f"rewire {c}.{p}"
+    return type(s).__name__  # pragma: no cover
+
+
 class Transaction:
-    """Runs actions, remembers how to undo each, and undoes them all on failure."""
+    """Runs actions, remembers per unit how to undo each, and undoes a unit when one of its
+    actions fails (the other units go on)."""
 
     def __init__(self, clock: Callable[[], float]) -> None:
         self.clock = clock
         self.records: list[StepRecord] = []
-        self.undo: list[tuple[str, Callable[[], None]]] = []
+        self.undo: dict[int, list[tuple[str, Callable[[], None]]]] = {}
+        #: unit -> (error, nodes that failed)
+        self.failed: dict[int, tuple[str, dict[str, str], str]] = {}
 
-    def run(self, action: str, node: str, do: Callable[[], Any], undo: Callable[[], None] | None):
-        t0 = self.clock()
-        try:
-            result = do()
-        except StepFailed as e:
-            self.records.append(StepRecord(action, node, self.clock() - t0, False, str(e)))
-            raise
-        self.records.append(StepRecord(action, node, self.clock() - t0))
-        if undo is not None:
-            self.undo.append((f"undo {action} {node}", undo))
-        return result
+    def ok(self, unit: int) -> bool:
+        return unit not in self.failed
 
-    def rollback(self) -> str:
-        """Undo in reverse order; returns the first undo failure ('' when all went well)."""
+    def push(self, unit: int, what: str, undo: Callable[[], None]) -> None:
+        self.undo.setdefault(unit, []).append((what, undo))
+
+    def fail(self, unit: int, error: str, nodes: Mapping[str, str] | None = None) -> None:
+        """Unit ``unit`` failed: undo what it did, in reverse order, at once."""
+        if unit in self.failed:
+            return
         first = ""
-        for what, fn in reversed(self.undo):
+        for what, fn in reversed(self.undo.pop(unit, [])):
             try:
                 fn()
             except Exception as e:  # keep undoing the rest
                 first = first or f"{what}: {e}"
-        self.undo.clear()
-        return first
+        self.failed[unit] = (error, dict(nodes or {}), first)
 
 
 @dataclass
@@ -208,6 +343,7 @@ class _Swap:
     old: NodeSpec
     new: NodeSpec
     strategy: str
+    unit: int
 
 
 class Executor:
@@ -238,21 +374,41 @@ class Executor:
         #: Pre-started replacements, by name: inactive (``standby``) or active on keys their
         #: consumers do not select yet (``hot-standby``).
         self.standby: dict[str, NodeSpec] = {}
+        self._switched: float | None = None
 
     # ---- public ------------------------------------------------------------------------
     def prestart_standby(self, specs: list[NodeSpec]) -> Outcome:
-        """Start standby replacements (at deployment time): inactive, or active if hot."""
+        """Start standby replacements (at deployment time): inactive, or active if hot.
+        Those that start are kept even when others do not."""
         specs = [msgspec.structs.replace(s, active=self.replacement.hot(s.name)) for s in specs]
-        tx = Transaction(self.clock)
         t0 = self.clock()
+        if not specs:
+            return Outcome(True)
         try:
-            if specs:
-                tx.run("prestart", _names(specs), lambda: self.actuator.start(specs), None)
+            self.actuator.start(specs)
+            failed: dict[str, str] = {}
         except StepFailed as e:
-            return Outcome(False, tx.records, str(e), seconds=self.clock() - t0)
+            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s in specs}
+        seconds = self.clock() - t0
+        records = [StepRecord("prestart", s.name, seconds, s.name not in failed,
+                              failed.get(s.name, "")) for s in specs]  # fmt: skip
         for s in specs:
-            self.standby[s.name] = s
-        return Outcome(True, tx.records, seconds=self.clock() - t0)
+            if s.name not in failed:
+                self.standby[s.name] = s
+        failures = [
+            UnitFailure([f"prestart {n}"], frozenset({n}), frozenset(), f"start {n}: {why}",
+                        {n: why}) for n, why in failed.items()
+        ]  # fmt: skip
+        return Outcome(
+            not failed,
+            records,
+            failures[0].error if failures else "",
+            rolled_back=bool(failed),
+            seconds=seconds,
+            failures=failures,
+            applied=len(specs) - len(failed),
+            steps=len(specs),
+        )
 
     def normalize(self, plan: r.Plan) -> tuple[r.Plan, list[str]]:
         """The plan as it applies to the nodes this executor knows to run, and what had to
@@ -294,62 +450,109 @@ class Executor:
                 steps.append(s)
         return r.Plan(steps=tuple(steps)), notes
 
-    def execute(self, plan: r.Plan) -> Outcome:
+    def execute(self, plan: r.Plan, *, skip: Collection[str] = ()) -> Outcome:
+        """Apply ``plan``; the units launching a component named in ``skip`` (implementations
+        known to be unavailable) are not tried and count as failed."""
         t0 = self.clock()
         plan, notes = self.normalize(plan)
+        units = plan_units(plan.steps, self.running, self.keys.data)
         tx = Transaction(self.clock)
         tx.records.extend(StepRecord("note", "", 0.0, True, n) for n in notes)
-        running_before, standby_before = dict(self.running), dict(self.standby)
-        self._switched: float | None = None
-        try:
-            self._apply(plan, tx)
-        except StepFailed as e:
-            rollback_error = tx.rollback()
-            self.running, self.standby = running_before, standby_before
-            return Outcome(
-                False,
-                tx.records,
-                str(e),
-                rolled_back=not rollback_error,
-                rollback_error=rollback_error,
-                seconds=self.clock() - t0,
+        self._switched = None
+        for i, s in enumerate(plan.steps):
+            name = _launches(s)
+            if name is not None and name in skip:
+                tx.fail(units[i], f"{name} is unavailable", {name: "unavailable"})
+        self._apply(plan, units, tx)
+        return self._outcome(plan, units, tx, t0)
+
+    def _outcome(self, plan: r.Plan, units: list[int], tx: Transaction, t0: float) -> Outcome:
+        failures = []
+        for u, (error, nodes, rollback_error) in tx.failed.items():
+            mine = [s for s, v in zip(plan.steps, units, strict=True) if v == u]
+            failures.append(
+                UnitFailure(
+                    steps=[describe_step(s) for s in mine],
+                    structure=frozenset(n for s in mine for n in _structural(s)),
+                    parameters=frozenset(
+                        s.component for s in mine if isinstance(s, r.SetParameters)
+                    ),
+                    error=error,
+                    nodes=nodes,
+                    skipped=set(nodes.values()) == {"unavailable"},
+                    rollback_error=rollback_error,
+                )
             )
+        applied = sum(1 for u in units if u not in tx.failed)
         first = None if self._switched is None else self._switched - t0
-        return Outcome(True, tx.records, seconds=self.clock() - t0, first_switch=first)
+        rollback_error = next((f.rollback_error for f in failures if f.rollback_error), "")
+        return Outcome(
+            not failures,
+            tx.records,
+            failures[0].error if failures else "",
+            rolled_back=bool(failures) and not rollback_error,
+            rollback_error=rollback_error,
+            seconds=self.clock() - t0,
+            first_switch=first,
+            failures=failures,
+            applied=applied,
+            steps=len(plan.steps),
+        )
 
     # ---- the phases --------------------------------------------------------------------
-    def _apply(self, plan: r.Plan, tx: Transaction) -> None:
-        steps = plan.steps
-        starts = [self._spec(s) for s in steps if isinstance(s, r.StartComponent)]
-        if starts:
-            self._start(tx, starts)
-        swaps = [self._plan_swap(s) for s in steps if isinstance(s, r.SwapComponent)]
-        restarts = [s for s in steps if isinstance(s, r.SetImplementation)]
+    def _apply(self, plan: r.Plan, units: list[int], tx: Transaction) -> None:
+        steps = list(zip(plan.steps, units, strict=True))
+        live = [(s, u) for s, u in steps if tx.ok(u)]
+        starts = [(self._spec(s), u) for s, u in live if isinstance(s, r.StartComponent)]
+        self._start(tx, starts)
+        swaps = [
+            self._plan_swap(s, u)
+            for s, u in steps
+            if isinstance(s, r.SwapComponent) and tx.ok(u)
+        ]
+        restarts = [(s, u) for s, u in steps if isinstance(s, r.SetImplementation) and tx.ok(u)]
         self._prepare(tx, swaps, restarts)
+        swaps = [w for w in swaps if tx.ok(w.unit)]
         cold = [w for w in swaps if w.strategy == "stop-then-start"]
         warm = [w for w in swaps if w.strategy != "stop-then-start"]
         states, cold_states = self._connect(tx, warm, cold, steps)
-        hot = [w.new.name for w in warm if self.replacement.hot(w.new.name)]
+        hot = [w.new.name for w in warm if self.replacement.hot(w.new.name) and tx.ok(w.unit)]
         if hot:  # the consumers' rewire was the switch: say so in the plan
             self._switched = self.clock()
             tx.records.append(StepRecord("select", ",".join(hot), 0.0, True))
+        cold = [w for w in cold if tx.ok(w.unit)]
         if cold:
-            self._stop(tx, [w.old for w in cold], self.replacement.stop_deadline)
+            self._stop(tx, [(w.old, w.unit) for w in cold], self.replacement.stop_deadline)
             news = [
-                msgspec.structs.replace(w.new, state=st)
-                for w, st in zip(cold, cold_states, strict=True)
+                (msgspec.structs.replace(w.new, state=cold_states.get(w.new.name)), w.unit)
+                for w in cold
+                if tx.ok(w.unit)
             ]
             self._start(tx, news)
-            self._switched = self.clock()
+            if any(tx.ok(w.unit) for w in cold):
+                self._switched = self.clock()
+        warm = [w for w in warm if tx.ok(w.unit)]
         self._switch(tx, warm, steps, states)
-        retire = [w for w in warm if not self.replacement.pre_started(w.old.name)]
-        stops = [self.running[s.component] for s in steps if isinstance(s, r.StopComponent)]
-        stops += [self.running[w.old.name] for w in retire]
-        for w in warm:  # a swapped-out standby node stays, inactive, for the way back
-            if w not in retire:
-                self.standby[w.old.name] = self.running.pop(w.old.name)
-        if stops:
-            self._stop(tx, stops)
+        self._retire(tx, [w for w in warm if tx.ok(w.unit)], steps)
+
+    def _retire(self, tx: Transaction, warm: list[_Swap], steps) -> None:
+        """Stop what goes; a swapped-out standby node stays, inactive, for the way back."""
+        stops = [
+            (self.running[s.component], u)
+            for s, u in steps
+            if isinstance(s, r.StopComponent) and tx.ok(u) and s.component in self.running
+        ]
+        for w in warm:
+            if not self.replacement.pre_started(w.old.name):
+                stops.append((self.running[w.old.name], w.unit))
+            else:
+                spec = self.running.pop(w.old.name)
+                self.standby[w.old.name] = spec
+                tx.push(w.unit, f"keep {w.old.name}", partial(self._unkeep, spec))
+        self._stop(tx, stops)
+
+    def _unkeep(self, spec: NodeSpec) -> None:
+        self.running[spec.name] = self.standby.pop(spec.name, spec)
 
     def _spec(self, s: r.StartComponent | r.SwapComponent | r.SetImplementation, **kw: Any):
         return spec_for(
@@ -363,7 +566,7 @@ class Executor:
             **kw,
         )
 
-    def _plan_swap(self, s: r.SwapComponent) -> _Swap:
+    def _plan_swap(self, s: r.SwapComponent, unit: int) -> _Swap:
         strategy = self.replacement.strategy_for(s.replacement)
         if strategy in PRE_STARTED and s.replacement not in self.standby:
             strategy = "start-then-stop"  # nothing pre-started: make before break
@@ -374,20 +577,25 @@ class Executor:
         new = self.standby.get(s.replacement) if strategy in PRE_STARTED else None
         if new is None:
             new = self._spec(s, active=strategy == "stop-then-start")
-        return _Swap(s, self.running[s.component], new, strategy)
+        return _Swap(s, self.running[s.component], new, strategy, unit)
 
     def _prepare(self, tx: Transaction, swaps: list[_Swap], restarts) -> None:
         """Everything before the connect batch: make-before-break replacements started
         (inactive), pre-started ones taken from the standby table, restarts done."""
-        mbb = [w.new for w in swaps if w.strategy == "start-then-stop"]
-        if mbb:
-            self._start(tx, mbb)
+        self._start(tx, [(w.new, w.unit) for w in swaps if w.strategy == "start-then-stop"])
         for w in swaps:
-            if w.strategy in PRE_STARTED:
-                self.running[w.new.name] = self.standby.pop(w.new.name)
+            if w.strategy in PRE_STARTED and tx.ok(w.unit):
+                name = w.new.name
+                self.running[name] = self.standby.pop(name)
+                tx.push(w.unit, f"take {name}", partial(self._untake, name))
         if restarts:
-            self._stop(tx, [self.running[s.component] for s in restarts])
-            self._start(tx, [self._spec(s) for s in restarts])
+            self._stop(tx, [(self.running[s.component], u) for s, u in restarts])
+            self._start(tx, [(self._spec(s), u) for s, u in restarts if tx.ok(u)])
+
+    def _untake(self, name: str) -> None:
+        """Give a pre-started node back to the standby table (its unit failed)."""
+        if name in self.running:
+            self.standby[name] = self.running.pop(name)
 
     def _wants_state(self, w: _Swap) -> bool:
         return any(
@@ -397,57 +605,55 @@ class Executor:
 
     def _connect(
         self, tx: Transaction, warm: list[_Swap], cold: list[_Swap], steps
-    ) -> tuple[list[Any], list[Any]]:
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
         """Rewire every subscriber to its new producers and export the state of the old
         nodes of all swaps, in one batch; the exported state of each warm and each cold
-        swap (None: not wanted). A cold swap's old node is stopped after this batch, so its
-        export costs no round trip of its own, and its consumers, rewired here, hear nothing
-        more from it while it stops."""
+        swap's new node (absent: not wanted). A cold swap's old node is stopped after this
+        batch, so its export costs no round trip of its own, and its consumers, rewired
+        here, hear nothing more from it while it stops."""
         batch: list[Ctl] = []
         for w in warm:
             new = self.running[w.new.name]
-            batch += self._rewires(
-                new, {p: [self.keys.data(t) for t in ts] for p, ts in w.step.inputs.items()}
-            )
-        for s in steps:
-            if isinstance(s, r.Rewire):
+            wiring = {p: [self.keys.data(t) for t in ts] for p, ts in w.step.inputs.items()}
+            batch += self._rewires(new, wiring, w.unit)
+        for s, u in steps:
+            if isinstance(s, r.Rewire) and tx.ok(u):
                 spec = self.running[s.component]
-                batch += self._rewires(spec, {s.port: [self.keys.data(t) for t in s.topics]})
-        batch = self._merge(batch)
+                batch += self._rewires(spec, {s.port: [self.keys.data(t) for t in s.topics]}, u)
         wanted = [w for w in [*warm, *cold] if self._wants_state(w)]
-        exports = [Ctl(w.old, m.ExportState()) for w in wanted]
+        exports = [Ctl(w.old, m.ExportState(), unit=w.unit) for w in wanted]
         if not batch and not exports:
-            return [None] * len(warm), [None] * len(cold)
+            return {}, {}
         replies = self._control(tx, "connect", batch + exports)
         states = {
-            w.new.name: rep.result  # type: ignore[union-attr]
+            w.new.name: rep.result
             for w, rep in zip(wanted, replies[len(batch) :], strict=True)
+            if isinstance(rep, m.Ok)
         }
-        return [states.get(w.new.name) for w in warm], [states.get(w.new.name) for w in cold]
+        return states, states
 
-    def _switch(self, tx: Transaction, warm: list[_Swap], steps, states: list[Any]) -> None:
+    def _switch(self, tx: Transaction, warm: list[_Swap], steps, states: dict[str, Any]) -> None:
         batch: list[Ctl] = []
-        for w, state in zip(warm, states, strict=True):
+        for w in warm:
             new = self.running[w.new.name]
+            state = states.get(w.new.name)
             if not new.active:
-                batch.append(self._activation(new, True, state))
+                batch.append(self._activation(new, True, w.unit, state))
             elif state is not None:  # a hot standby: it runs already, and takes the state
-                batch.append(Ctl(new, m.ImportState(state=state), new, None))
+                batch.append(Ctl(new, m.ImportState(state=state), None, w.unit))
             if self._must_deactivate(w):
-                batch.append(self._activation(self.running[w.old.name], False))
-        for s in steps:
-            if isinstance(s, r.SetParameters):
+                batch.append(self._activation(self.running[w.old.name], False, w.unit))
+        for s, u in steps:
+            if isinstance(s, r.SetParameters) and tx.ok(u):
                 spec = self.running[s.component]
                 old = {k: spec.params.get(k) for k in s.values}
-                after = msgspec.structs.replace(spec, params={**spec.params, **s.values})
                 batch.append(
-                    Ctl(spec, m.SetParams(params=dict(s.values)), after, m.SetParams(params=old))
+                    Ctl(spec, m.SetParams(params=dict(s.values)), m.SetParams(params=old), u)
                 )
-        batch = self._merge(batch)
         if not batch:
             return
         self._control(tx, "switch", batch)
-        if warm and self._switched is None:
+        if any(tx.ok(w.unit) for w in warm) and self._switched is None:
             self._switched = self.clock()
 
     def _must_deactivate(self, w: _Swap) -> bool:
@@ -455,103 +661,133 @@ class Executor:
         replacement needs no deactivation: the rewire of its subscribers, in the connect
         batch, already cut it off. One that stays (standby) or shares output keys does; one
         that stays hot goes on publishing on its own keys, which its consumers deselected."""
-        old_out = {k for p in w.old.ports.values() if p.direction == "publish" for k in p.keys}
-        new_out = {k for p in w.new.ports.values() if p.direction == "publish" for k in p.keys}
-        shared = bool(old_out & new_out)
+        shared = bool(_outputs(w.old) & _outputs(w.new))
         if self.replacement.hot(w.old.name):
             return shared
         return shared or self.replacement.pre_started(w.old.name)
 
-    def _activation(self, spec: NodeSpec, active: bool, state: Any = None) -> Ctl:
+    @staticmethod
+    def _activation(spec: NodeSpec, active: bool, unit: int, state: Any = None) -> Ctl:
         req = m.Activate(state=state) if active else m.Deactivate()
         inv = m.Deactivate() if active else m.Activate()
-        return Ctl(spec, req, msgspec.structs.replace(spec, active=active), inv)
+        return Ctl(spec, req, inv, unit)
 
     @staticmethod
-    def _rewires(spec: NodeSpec, wiring: dict[str, list[str]]) -> list[Ctl]:
+    def _rewires(spec: NodeSpec, wiring: dict[str, list[str]], unit: int) -> list[Ctl]:
         out = []
         for port, keys in wiring.items():
             old = list(spec.ports[port].keys)
-            if old == keys:
-                continue
-            ports = dict(spec.ports)
-            ports[port] = msgspec.structs.replace(ports[port], keys=keys)
-            after = msgspec.structs.replace(spec, ports=ports)
-            out.append(
-                Ctl(spec, m.Rewire(port=port, keys=keys), after, m.Rewire(port=port, keys=old))
-            )
-        return out
-
-    @staticmethod
-    def _merge(batch: list[Ctl]) -> list[Ctl]:
-        """Several requests to one node: chain their ``after`` specs so the last is complete."""
-        latest: dict[str, NodeSpec] = {}
-        out = []
-        for c in batch:
-            base = latest.get(c.spec.name)
-            if base is not None and c.after is not None:
-                after = _apply_request(base, c.request)
-                c = Ctl(base, c.request, after, c.inverse)
-            if c.after is not None:
-                latest[c.spec.name] = c.after
-            out.append(c)
+            if old != keys:
+                out.append(Ctl(spec, m.Rewire(port=port, keys=keys), m.Rewire(port=port, keys=old),
+                               unit))  # fmt: skip
         return out
 
     # ---- actions with their inverses ---------------------------------------------------
-    def _start(self, tx: Transaction, specs: list[NodeSpec]) -> None:
-        def undo() -> None:
-            self.actuator.stop(specs)
+    def _start(self, tx: Transaction, specs: list[tuple[NodeSpec, int]]) -> None:
+        """Start the nodes at once; a node that does not start fails its unit."""
+        if not specs:
+            return
+        t0 = self.clock()
+        try:
+            self.actuator.start([s for s, _ in specs])
+            failed: dict[str, str] = {}
+        except StepFailed as e:
+            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
+        seconds = self.clock() - t0
+        tx.records.append(
+            StepRecord("start", _names(s for s, _ in specs), seconds, not failed,
+                       "; ".join(f"{n}: {why}" for n, why in failed.items()))
+        )  # fmt: skip
+        for spec, unit in specs:
+            if spec.name in failed:
+                continue
+            self.running[spec.name] = spec
+            tx.push(unit, f"start {spec.name}", partial(self._unstart, spec))
+        for spec, unit in specs:
+            if spec.name in failed:
+                why = failed[spec.name]
+                tx.fail(unit, f"start {spec.name}: {why}", {spec.name: why})
 
-        tx.run("start", _names(specs), lambda: self.actuator.start(specs), undo)
-        for s in specs:
-            self.running[s.name] = s
+    def _unstart(self, spec: NodeSpec) -> None:
+        self.running.pop(spec.name, None)
+        self.actuator.stop([spec])
 
     def _stop(
-        self, tx: Transaction, specs: list[NodeSpec], deadlines: Mapping[str, float] | None = None
+        self,
+        tx: Transaction,
+        specs: list[tuple[NodeSpec, int]],
+        deadlines: Mapping[str, float] | None = None,
     ) -> None:
-        def undo() -> None:
-            self.actuator.start(specs)
+        if not specs:
+            return
+        t0 = self.clock()
+        try:
+            self.actuator.stop([s for s, _ in specs], deadlines)
+            failed: dict[str, str] = {}
+        except StepFailed as e:
+            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
+        seconds = self.clock() - t0
+        tx.records.append(
+            StepRecord("stop", _names(s for s, _ in specs), seconds, not failed,
+                       "; ".join(f"{n}: {why}" for n, why in failed.items()))
+        )  # fmt: skip
+        for spec, unit in specs:
+            if spec.name not in failed:
+                self.running.pop(spec.name, None)
+                tx.push(unit, f"stop {spec.name}", partial(self._unstop, spec))
+        for spec, unit in specs:
+            if spec.name in failed:
+                why = failed[spec.name]
+                tx.fail(unit, f"stop {spec.name}: {why}", {spec.name: why})
 
-        tx.run("stop", _names(specs), lambda: self.actuator.stop(specs, deadlines), undo)
-        for s in specs:
-            self.running.pop(s.name, None)
+    def _unstop(self, spec: NodeSpec) -> None:
+        self.actuator.start([spec])
+        self.running[spec.name] = spec
 
     def _control(self, tx: Transaction, action: str, batch: list[Ctl]) -> list[m.Reply]:
+        """Send the batch; each successful request updates its node's spec and leaves its
+        inverse in its unit; a failed one fails its unit (undoing what the unit did)."""
         t0 = self.clock()
         replies = self.actuator.control(batch)
         seconds = self.clock() - t0
-        failed = [(c, rep) for c, rep in zip(batch, replies, strict=True) if isinstance(rep, m.Err)]
-        done = [c for c, rep in zip(batch, replies, strict=True) if not isinstance(rep, m.Err)]
-        inverses = [Ctl(c.after or c.spec, c.inverse, c.spec) for c in reversed(done) if c.inverse]
-        if inverses:
-
-            def undo() -> None:  # the replies' results are of no use to a rollback
-                self._ok(inverses)
-
-            tx.undo.append((f"undo {action}", undo))
-        for c in done:
-            if c.after is not None:
-                table = self.running if c.spec.name in self.running else self.standby
-                table[c.spec.name] = c.after
-        for c in batch:
-            bad = next((rep for cc, rep in failed if cc is c), None)
-            detail = "" if bad is None else f"{bad.message} ({bad.code})"  # type: ignore[union-attr]
+        for c, rep in zip(batch, replies, strict=True):
+            bad = rep if isinstance(rep, m.Err) else None
+            detail = "" if bad is None else f"{bad.message} ({bad.code})"
             tx.records.append(StepRecord(c.label, "", seconds, bad is None, detail))
-        if failed:
-            c, rep = failed[0]
-            raise StepFailed(f"{c.label}: {rep.message}")  # type: ignore[union-attr]
-        return replies
-
-    def _ok(self, batch: list[Ctl]) -> list[Any]:
-        """Send a batch that must succeed whole; the results of its replies."""
-        replies = self.actuator.control(batch)
+            if bad is None:
+                self._update(c.spec.name, c.request)
+                if c.inverse is not None:
+                    tx.push(c.unit, f"{action} {c.label}", partial(self._undo_control, c))
         for c, rep in zip(batch, replies, strict=True):
             if isinstance(rep, m.Err):
-                raise StepFailed(f"{c.label}: {rep.message}")
-        return [rep.result for rep in replies]  # type: ignore[union-attr]
+                tx.fail(c.unit, f"{c.label}: {rep.message}")
+        return replies
+
+    def _undo_control(self, c: Ctl) -> None:
+        assert c.inverse is not None
+        table = self.running if c.spec.name in self.running else self.standby
+        spec = table.get(c.spec.name, c.spec)
+        rep = self.actuator.control([Ctl(spec, c.inverse)])[0]
+        if isinstance(rep, m.Err):
+            raise StepFailed(f"{c.label}: {rep.message}")
+        self._update(c.spec.name, c.inverse)
+
+    def _update(self, name: str, request: m.NodeRequest) -> None:
+        table = self.running if name in self.running else self.standby
+        if name in table:
+            table[name] = apply_request(table[name], request)
 
 
-def _apply_request(spec: NodeSpec, req: m.NodeRequest) -> NodeSpec:
+def _launches(s: r.PlanStep) -> str | None:
+    """The component a step starts a process of (None: it starts nothing)."""
+    if isinstance(s, r.StartComponent | r.SetImplementation):
+        return s.component
+    if isinstance(s, r.SwapComponent):
+        return s.replacement
+    return None
+
+
+def apply_request(spec: NodeSpec, req: m.NodeRequest) -> NodeSpec:
     """The spec after a control request (for the host agent's restarts)."""
     match req:
         case m.Activate():

@@ -117,6 +117,8 @@ class Rejected(msgspec.Struct, frozen=True, kw_only=True):
     action: str
     reason: str
     span: Span | None = None
+    #: The feature it asked for is unavailable (an implementation it needs cannot run).
+    unavailable: str = ""
 
 
 class ConflictRecord(msgspec.Struct, frozen=True, kw_only=True):
@@ -292,6 +294,9 @@ class _ActionInfo:
     reason: str = ""
     claims: list[tuple[ClaimKey, str]] = field(default_factory=list)
     requests: list[Request] = field(default_factory=list)
+    #: select_feature_from_variants_of: the selectable variants, best first (the first
+    #: available one is activated).
+    variants: tuple[str, ...] = ()
 
 
 @dataclass(slots=True)
@@ -458,7 +463,7 @@ class _Compiler:
             case SelectVariant():
                 best = [v for v in ranked_variants(self.fm, action) if v in self.selectable]
                 if best:
-                    info.features = (best[0],)
+                    info.features, info.variants = (best[0],), tuple(best)
                     claims = feature_claims(self.fm, best[0], True)
                 else:
                     info.kind = "reject"
@@ -731,7 +736,11 @@ class Engine:
                     "the initial run-time selection is invalid", [p.message for p in problems]
                 )
         self._effective = self._clamp_all(self.selection)
-        self._unavailable: dict[str, str] = {}
+        self._unselectable: dict[str, str] = {}
+        #: Run-time features that need an unavailable implementation, and why (see
+        #: `set_unavailable`).
+        self.unavailable: dict[str, str] = {}
+        self._full = False
         self.ticks = 0
         #: Run-time features an operator forced on (True) or off (False): see `force`.
         self.forced: dict[str, bool] = {}
@@ -770,6 +779,18 @@ class Engine:
         )
         return selection
 
+    def set_unavailable(self, features: Mapping[str, str]) -> bool:
+        """Features that need an unavailable implementation (feature -> why): from the next
+        tick they cannot be activated (the request is rejected as ``unavailable``), a
+        ``select_feature_from_variants_of`` picks the best variant still available, and a
+        selected one is left for another where the feature model allows. That tick runs
+        every rule, as the first does. Returns whether anything changed."""
+        features = dict(features)
+        if features == self.unavailable:
+            return False
+        self.unavailable, self._full = features, True
+        return True
+
     def tick(
         self, now: float, measurements: Mapping[str, Sample], *, changed: Collection[str] = ()
     ) -> TickResult:
@@ -777,7 +798,7 @@ class Engine:
         fresh = self._prepare(now, measurements, changed)
         out: list[int] = []
         cv_before = self._effective
-        first = self.ticks == 0
+        first, self._full = self.ticks == 0 or self._full, False
         M, V, timed = self._M, self._V, self._timed
         woken = {u for i in fresh for u in self._slot_units[i]}
         ran = list(self._always)
@@ -862,12 +883,25 @@ class Engine:
                 if previous is not None and previous[0] != value:
                     self._conflict(key, previous, info, position, fired, conflicts)
                 owners[key] = (value, position, info)
-            if info.requests:
-                requests += info.requests
-                sources += [position] * len(info.requests)
+            wanted = info.requests
+            if info.variants and self.unavailable:
+                wanted = self._available_variant(info, rejected)
+            if wanted:
+                requests += wanted
+                sources += [position] * len(wanted)
             elif info.reason:
                 rejected.append(_rejected(info.fired, info.reason))
         return fired, rejected, conflicts, requests, sources
+
+    def _available_variant(self, info: _ActionInfo, rejected: list[Rejected]) -> list[Request]:
+        """The best variant of a select that is available (none: rejected as such)."""
+        best = next((v for v in info.variants if v not in self.unavailable), None)
+        if best is not None:
+            return [("activate", best)]
+        why = "; ".join(self.unavailable[v] for v in info.variants)
+        reason = f"no variant is available: {why}"
+        rejected.append(_rejected(info.fired, reason, info.variants[0]))
+        return []
 
     def _in_force(
         self, out: list[int], fired: list[FiredRule], ran: list[int]
@@ -951,7 +985,9 @@ class Engine:
                 rejected.append(_rejected(fired[sources[i]], reason))
             requests, sources = [requests[i] for i in keep], [sources[i] for i in keep]
         for (kind, f), src in zip(requests, sources, strict=True):
-            if kind == "activate" and f not in self.selectable:
+            if kind == "activate" and f in self.unavailable and not self.forced.get(f):
+                rejected.append(_rejected(fired[src], self.unavailable[f], f))
+            elif kind == "activate" and f not in self.selectable:
                 rejected.append(_rejected(fired[src], self._why_unavailable(f)))
             elif kind == "deactivate" and f not in self.selectable:
                 continue  # never selected under this deployment: nothing to do
@@ -960,12 +996,13 @@ class Engine:
                 live_sources.append(src)
         live, live_sources = self._reduce(live, live_sources, current)
         if not live:
-            return current
+            return self._leave_unavailable(current)
         selection, refused = apply_requests(self.fm, self.deployment, current, live)
         for i, reason in refused:
             rejected.append(_rejected(fired[live_sources[i]], reason))
         if self.forced:
             selection = self._enforce(selection, current, live, live_sources, fired, rejected)
+        selection = self._leave_unavailable(selection)
         if self.verify and selection != current:
             problems = check_selection(self.fm, self.deployment | selection)
             if problems:  # pragma: no cover - apply_requests keeps selections valid
@@ -1033,14 +1070,34 @@ class Engine:
         keep = [i for i, (_, f) in enumerate(live) if i not in dropped and family[f] in dirty]
         return [live[i] for i in keep], [sources[i] for i in keep]
 
+    def _leave_unavailable(self, selection: frozenset[str]) -> frozenset[str]:
+        """Leave the selected features that are unavailable (unless an operator forced them
+        on) where the feature model allows: deselect one, or else activate the first
+        available selectable sibling of its group (model order)."""
+        unavailable = self.unavailable.keys() - {f for f, on in self.forced.items() if on}
+        for f in sorted(selection & unavailable):
+            if f not in selection:
+                continue
+            parent = self.fm.parent.get(f)
+            siblings = [c.name for c in self.fm.features[parent].children] if parent else []
+            tries: list[list[Request]] = [[("deactivate", f)]]
+            tries += [[("activate", s)] for s in siblings
+                      if s != f and s in self.selectable and s not in unavailable]  # fmt: skip
+            for requests in tries:
+                after, refused = apply_requests(self.fm, self.deployment, selection, requests)
+                if not refused and f not in after and not (after - selection) & unavailable:
+                    selection = after
+                    break
+        return selection
+
     def _why_unavailable(self, feature: str) -> str:
-        reason = self._unavailable.get(feature)
+        reason = self._unselectable.get(feature)
         if reason is None:
             _, refused = apply_requests(
                 self.fm, self.deployment, self.selection, [("activate", feature)]
             )
             reason = refused[0][1] if refused else f"{feature} is not selectable"
-            self._unavailable[feature] = reason
+            self._unselectable[feature] = reason
         return reason
 
     def _clamp_all(self, selection: frozenset[str]) -> list[float | None]:
@@ -1173,8 +1230,14 @@ def _wanted(key: ClaimKey, value: str, f: FiredRule) -> str:
     return value
 
 
-def _rejected(report: FiredRule, reason: str) -> Rejected:
-    return Rejected(rule=report.rule, action=report.action, reason=reason, span=report.span)
+def _rejected(report: FiredRule, reason: str, unavailable: str = "") -> Rejected:
+    return Rejected(
+        rule=report.rule,
+        action=report.action,
+        reason=reason,
+        span=report.span,
+        unavailable=unavailable,
+    )
 
 
 def _due(timed: list[_RuleSchedule], now: float) -> bool:

@@ -115,7 +115,10 @@ def test_crashed_node_restarts_with_its_current_wiring(system):
     assert info.result["params"]["offset"] == pytest.approx(7.0)
 
 
-def test_replacement_that_fails_to_start_is_rolled_back(system, tmp_path):
+def test_replacement_that_fails_to_start_is_rolled_back_alone(system, tmp_path):
+    """Filtered's node cannot start: its swap is undone (Direct runs again), the Gain
+    parameter of the same plan is applied, the event says partly applied and why, and the
+    implementation becomes unavailable, so the Adaptation Engine decides Direct again."""
     pkg = package_copy(tmp_path)
 
     def break_filtered(data):
@@ -126,15 +129,29 @@ def test_replacement_that_fails_to_start_is_rolled_back(system, tmp_path):
     sys_ = system(pkg)
     direct_pid = sys_.node(sys_.status, "direct")["pid"]
     sys_.set_level(7.0)
-    sys_.wait(lambda s: any(isinstance(e, m.AdaptationEvent) and e.outcome == "rolled_back"
-                            for e in sys_.events()), "the rollback event")  # fmt: skip
-    st = sys_.wait(lambda s: sys_.node(s, "direct")["state"] == "RUNNING", "direct back")
-    assert st["engine"]["selection"] == ["Direct", "Path", "Tuning"]
+
+    def event(outcome: str = "", kind: str = "") -> m.AdaptationEvent | None:
+        return next((e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+                     and (not outcome or e.outcome == outcome)
+                     and (not kind or e.kind == kind)), None)  # fmt: skip
+
+    sys_.wait(lambda s: event("partial") is not None, "the partly applied event")
+    partial = event("partial")
+    assert partial is not None and "filtered" in partial.message
+    assert "Direct" in partial.message  # what is in effect
+    sys_.wait(lambda s: event(kind="unavailable") is not None, "the unavailable event")
+    unavailable = event(kind="unavailable")
+    assert unavailable is not None and "filtered" in unavailable.message and "Filtered" in unavailable.message
+    st = sys_.wait(
+        lambda s: sys_.node(s, "direct")["state"] == "RUNNING"
+        and s["engine"]["selection"] == ["Direct", "Path", "Tuning"],
+        "Direct decided again",
+    )
+    assert st["engine"]["effective"] == ["Direct", "Path", "Tuning"]
     assert "filtered" not in st["engine"]["running"]
+    assert [u["component"] for u in st["engine"]["unavailable"]] == ["filtered"]
     assert sys_.node(st, "direct")["pid"] != direct_pid  # stop-then-start: it was restarted
-    failed = next(e for e in sys_.events()
-                  if isinstance(e, m.AdaptationEvent) and e.outcome == "rolled_back")  # fmt: skip
-    assert "filtered" in failed.message and failed.level == "error"
+    assert sys_.ctl("sink", m.Describe()).result["params"]["offset"] == 7.0  # Gain applied
 
 
 def test_standby_replacement_is_prestarted_and_switched_by_activation(system, tmp_path):

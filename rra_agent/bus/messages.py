@@ -135,7 +135,7 @@ class AdaptationEvent(Msg, tag="event"):
     node: str | None = None
     cause: list[FiredRule] = []
     plan: list[str] = []
-    outcome: Literal["ok", "failed", "rolled_back", ""] = ""
+    outcome: Literal["ok", "partial", "failed", "rolled_back", ""] = ""
     #: Phase durations in seconds: detect, decide, plan, execute, total.
     durations: dict[str, float] = {}
     seq: int | None = None
@@ -430,10 +430,37 @@ class ForceFeatures(Msg, tag="force_features"):
     operator: str = ""
 
 
-EngineRequest = Status | Describe | Ping | Stats | SetParam | GetState | ForceFeatures
+class Retry(Msg, tag="retry"):
+    """An operator re-admits unavailable implementations (``rra retry``): the Run-time
+    Resolution Engine forgets that they failed, the Adaptation Engine may select the
+    features needing them again, and the next plan tries them. ``components`` empty: all."""
+
+    components: list[str] = []
+    operator: str = ""
+
+
+EngineRequest = (
+    Status | Describe | Ping | Stats | SetParam | GetState | ForceFeatures | Retry
+)
 
 
 # ---- engine state -----------------------------------------------------------------------
+class Unavailable(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """An implementation of a component that cannot start or keeps crashing: the engines
+    decide without the features that need it until a probe (a start, then a stop) succeeds
+    or an operator re-admits it (``rra retry``)."""
+
+    component: str
+    #: The key of the implementation in the component's ``implementations`` ("": its own).
+    implementation: str = ""
+    #: Why (the last failure: the node's exception, or what its host agent saw).
+    reason: str
+    #: Since when (wall clock), after how many failures, and when the next probe is due.
+    since: float
+    failures: int = 1
+    probe_at: float = 0.0
+
+
 class EngineState(Msg, tag="engine_state"):
     """The Run-time Configured System Model as the Run-time Resolution Engine leader holds
     it: published on ``state/resolution`` whenever it changes, so a standby engine mirrors
@@ -457,6 +484,17 @@ class EngineState(Msg, tag="engine_state"):
     #: Engine leader last published them (a restarted Adaptation Engine resumes from them).
     forced: dict[str, bool] = {}
     conflicts: list[ConflictReport] = []
+    #: What is in effect: the run-time selection and CV values the running system shows
+    #: (``selection`` and ``cv`` are what was decided; they differ while a plan is applied
+    #: in part, e.g. a node that cannot start).
+    effective: list[str] = []
+    effective_cv: dict[str, float] = {}
+    #: Implementations that are unavailable (failure as context).
+    unavailable: list[Unavailable] = []
+    #: Why the running system differs from the decision (the failed steps), if it does.
+    degraded: list[str] = []
+    #: When this state was made (wall clock).
+    stamp: float = 0.0
 
 
 StateMessage = EngineState

@@ -39,6 +39,7 @@ from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
+from rra_agent.core.availability import requirements, unavailable_features
 from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
 from rra_agent.core.overrides import OverrideError
 from rra_agent.core.rules import Engine, TickResult
@@ -46,12 +47,14 @@ from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
+from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import SelectionError
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
+_STATE = m.Codec[m.StateMessage](m.StateMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ANY = m.Codec[Any](Any)
 
@@ -90,6 +93,12 @@ class AdaptationProcess(EngineProcess):
         #: The conflicts in force as announced (the leader's; a standby adopts them).
         self.conflicts = ConflictTracker()
         self.events: EventSink | None = None
+        #: Feature -> the implementations it launches (failure as context), and the
+        #: Run-time Resolution Engine leader whose state says which are unavailable.
+        self.needs = requirements(dep.package.features, dep.package.runtime)
+        self.resolution: LeaderWatch | None = None
+        #: Rejections as unavailable already reported: (rule, feature).
+        self._unavailable_told: set[tuple[str, str]] = set()
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -128,12 +137,38 @@ class AdaptationProcess(EngineProcess):
         if not self.leading:
             self.loop.post(lambda: self._follow(msg))
 
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        """The Run-time Resolution Engine leader's state: which implementations are
+        unavailable (only its live leader's state counts)."""
+        raw = sample.payload.to_bytes()
+        if too_large("state", len(raw)):
+            self.drop("too_large", f"engine state of {len(raw)} bytes")
+            return
+        try:
+            state = _STATE.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.drop("malformed", f"engine state: {e}")
+            return
+        if self.resolution is None or not self.resolution.is_leader(state.fence):
+            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
+            return
+        self.loop.post(lambda: self._availability(state.unavailable))
+
+    def _availability(self, unavailable: list[m.Unavailable]) -> None:
+        """Decide again without the features that need an unavailable implementation."""
+        gone = {(u.component, u.implementation): u.reason for u in unavailable}
+        if self.engine.set_unavailable(unavailable_features(self.needs, gone)):
+            self._unavailable_told.clear()
+            if self.resumed:
+                self.evaluate(force=True)
+
     # ---- resuming and following (main thread) -------------------------------------------
     def starting(self) -> None:
         """Resume from the running system before taking part in the election."""
         state = self._ask_state()
         if state is not None:
             self._adopt(state.selection, state.cv, "resumed from the system's state")
+            self._availability(state.unavailable)
             self.engine.forced = dict(state.forced)
             self.conflicts.adopt(_live(c) for c in state.conflicts)
             if state.selection_fence is not None:
@@ -230,7 +265,20 @@ class AdaptationProcess(EngineProcess):
             for c in started:
                 self._conflict_event(c, now, None)
             self.publish(result, values, now)
+        self._tell_unavailable(result)
         return result
+
+    def _tell_unavailable(self, result: TickResult) -> None:
+        """An ``unavailable`` event for each rule asking for an unavailable feature (once
+        per rule and feature until the availability changes): the configuration stays."""
+        for r in result.rejected:
+            key = (r.rule, r.unavailable)
+            if not r.unavailable or key in self._unavailable_told:
+                continue
+            self._unavailable_told.add(key)
+            text = f"rule {r.rule}: {r.action}: {r.reason}; the configuration stays"
+            print(f"rra {self.name}: {text}", flush=True)
+            self._emit("unavailable", text, level="warning")
 
     def _conflict_event(self, c: LiveConflict, now: float, lasted: float | None) -> None:
         """A conflict started (``lasted`` None) or ended: report, event, log line."""
@@ -348,11 +396,14 @@ class AdaptationProcess(EngineProcess):
             priority=zenoh.Priority.INTERACTIVE_HIGH,
             express=True,
         )
+        self.resolution = LeaderWatch(session, self.keys, "resolution")
         return [
             self.publisher,
             self.events.publisher,
+            self.resolution,
             session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
             session.declare_subscriber(self.keys.selection, self._on_selection),
+            session.declare_subscriber(self.keys.state("resolution"), self._on_state),
         ]
 
     def on_leadership(self, leading: bool) -> None:
@@ -370,6 +421,7 @@ class AdaptationProcess(EngineProcess):
             "seq": self.seq,
             "resumed": self.resumed,
             "forced": _choices(self.engine.forced),
+            "unavailable": dict(self.engine.unavailable),
             "conflicts": [
                 msgspec.to_builtins(_report(c, c.since, None)) for c in self.conflicts.current
             ],

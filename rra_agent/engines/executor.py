@@ -693,11 +693,7 @@ class Executor:
             failed: dict[str, str] = {}
         except StepFailed as e:
             failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
-        seconds = self.clock() - t0
-        tx.records.append(
-            StepRecord("start", _names(s for s, _ in specs), seconds, not failed,
-                       "; ".join(f"{n}: {why}" for n, why in failed.items()))
-        )  # fmt: skip
+        _record(tx, "start", [s for s, _ in specs], failed, self.clock() - t0)
         for spec, unit in specs:
             if spec.name in failed:
                 continue
@@ -726,11 +722,7 @@ class Executor:
             failed: dict[str, str] = {}
         except StepFailed as e:
             failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
-        seconds = self.clock() - t0
-        tx.records.append(
-            StepRecord("stop", _names(s for s, _ in specs), seconds, not failed,
-                       "; ".join(f"{n}: {why}" for n, why in failed.items()))
-        )  # fmt: skip
+        _record(tx, "stop", [s for s, _ in specs], failed, self.clock() - t0)
         for spec, unit in specs:
             if spec.name not in failed:
                 self.running.pop(spec.name, None)
@@ -776,6 +768,17 @@ class Executor:
         table = self.running if name in self.running else self.standby
         if name in table:
             table[name] = apply_request(table[name], request)
+
+
+def _record(
+    tx: Transaction, action: str, specs: list[NodeSpec], failed: Mapping[str, str], seconds: float
+) -> None:
+    """One plan line for the nodes of a batch that made it, one for each that did not."""
+    done = [s for s in specs if s.name not in failed]
+    if done:
+        tx.records.append(StepRecord(action, _names(done), seconds))
+    for name, why in failed.items():
+        tx.records.append(StepRecord(action, name, seconds, False, why))
 
 
 def _launches(s: r.PlanStep) -> str | None:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,13 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
 from rra_agent.core import resolution as r
+from rra_agent.core.availability import (
+    Need,
+    component_needs,
+    needed_by,
+    requirements,
+)
+from rra_agent.core.effect import effective_model, in_effect
 from rra_agent.core.election import Term, newer
 from rra_agent.core.features import check_selection, default_runtime_selection
 from rra_agent.core.rules import clamp_cv
@@ -53,11 +61,12 @@ from rra_agent.deployment import Deployment
 from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
-from rra_agent.engines.executor import Executor, Outcome, spec_for
+from rra_agent.engines.executor import Executor, Outcome, StepFailed, UnitFailure, spec_for
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
+from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.errors import RraError
-from rra_agent.models.system import Component, ParamValue, SystemModel
+from rra_agent.models.system import Component, ParamValue, SystemModel, parse_endpoint
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
@@ -68,6 +77,16 @@ EMULATED_DELAY = float(os.environ.get("RRA_EMULATED_SWAP_DELAY", "0") or 0)
 STATE_EVERY = 1.0
 #: After a host agent appears, how long to let the adaptation react before reconciling it.
 HOST_SETTLE = 0.5
+#: A decision not fully in effect is tried again after this long, doubling up to
+#: ``retry_after`` (seconds).
+RETRY_FIRST = 0.5
+#: Failed starts without a crash (timeouts, no reply) before an implementation is taken
+#: as unavailable (a crash makes it unavailable at once).
+TIMEOUTS_UNAVAILABLE = 3
+#: A probe of an unavailable implementation waits at most this long for it to be ready.
+PROBE_TIMEOUT = 5.0
+#: Probes of an unavailable implementation back off up to this (seconds).
+PROBE_MAX = 300.0
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
@@ -87,7 +106,7 @@ class ResolutionEngine(EngineProcess):
         host: str = "local",
         name: str = NAME,
         run_dir: Path | None = None,
-        retry_after: float = 5.0,
+        retry_after: float = 30.0,
         start_timeout: float = 15.0,
         reconcile_period: float = 1.0,
     ) -> None:
@@ -106,6 +125,19 @@ class ResolutionEngine(EngineProcess):
         self.forced: dict[str, bool] = {}
         self.conflicts: list[m.ConflictReport] = []
         self.current = msgspec.structs.replace(dep.configured, components=[], connections=[])
+        #: What is in effect (the running system shows it), beside what was decided.
+        self.effective: frozenset[str] = self.selection
+        self.effective_cv: dict[str, float] = dict(self.cv)
+        #: Implementations that cannot start or keep crashing, by (component, key).
+        self.unavailable: dict[Need, m.Unavailable] = {}
+        self.needs = requirements(fm, dep.package.runtime)
+        #: Failed starts without a crash, by implementation (see TIMEOUTS_UNAVAILABLE).
+        self._timeouts: dict[Need, int] = {}
+        #: Why what runs differs from the decision (the failed steps of the last plan).
+        self.degraded: list[str] = []
+        self._retry_at: float | None = None
+        self._backoff = RETRY_FIRST
+        self._stamp = time.time()
         self.applied = 0
         self.selection_fence: Term | None = None
         self.version = 0
@@ -123,10 +155,8 @@ class ResolutionEngine(EngineProcess):
         #: The selection last acted on (each is acted on once; a retry clears it).
         self._taken: m.Selection | None = None
         self._waiting_for_claim = False
-        #: Live Adaptation Engine claims (replica -> epoch) and members: whose selections count.
-        self.adaptation_claims: dict[str, int] = {}
-        self.adaptation_members: set[str] = set()
-        self.failed: tuple[frozenset[str], tuple, float] | None = None
+        #: The Adaptation Engine's leader: whose selections count.
+        self.adaptation: LeaderWatch | None = None
         self._next_reconcile = 0.0
         self._reconcile_soon = False
         self.seq = 0
@@ -266,11 +296,20 @@ class ResolutionEngine(EngineProcess):
         self.mirror = state
         self.selection, self.cv = frozenset(state.selection), dict(state.cv)
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
+        self._take_state(state)
+        self.publish_status()
+
+    def _take_state(self, state: m.EngineState) -> None:
+        """What a published or saved state says besides the selection and the parameters."""
         self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
         self.applied = state.applied
         if state.selection_fence is not None:
             self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
-        self.publish_status()
+        old = not state.stamp  # a state of a version that did not say what is in effect
+        self.effective = frozenset(state.selection if old else state.effective)
+        self.effective_cv = dict(state.cv if old else state.effective_cv)
+        self.unavailable = {(u.component, u.implementation): u for u in state.unavailable}
+        self.degraded = list(state.degraded)
 
     def stalled(self) -> None:
         """Re-sync the mirror from the leader at once (publications were missed)."""
@@ -306,6 +345,8 @@ class ResolutionEngine(EngineProcess):
         self.observed[st.node] = st
         if st.state in ("STOPPED", "EXITED", "FATAL") or (prev and prev.pid != st.pid):
             self._reconcile_soon = True
+        if st.state == "FATAL" and self.leading:
+            self._node_failed(st)
 
     # ---- taking over -------------------------------------------------------------------
     def on_leadership(self, leading: bool) -> None:
@@ -338,7 +379,7 @@ class ResolutionEngine(EngineProcess):
         self.executor.running = {s.name: s for s in state.running}
         self.executor.standby = {s.name: s for s in state.standby}
         try:
-            self.current = self.target(self.selection, self.cv)
+            self.current = self.target(self.effective, self.effective_cv)
         except RraError as e:
             self._event("takeover", f"cannot rebuild the model: {e}", None, level="error")
             return
@@ -397,34 +438,18 @@ class ResolutionEngine(EngineProcess):
         return selection, {**self.cv, **cv}
 
     def _from_adaptation_leader(self, term: Term) -> bool:
-        """The term of a live Adaptation Engine claim (or of a live replica claiming above
-        every claim seen: its claim token may still be on its way)."""
-        epoch, leader = term
-        if self.adaptation_claims.get(leader) == epoch:
-            return True
-        newest = max(self.adaptation_claims.values(), default=0)
-        return leader in self.adaptation_members and epoch > newest
+        """The term of the live Adaptation Engine leader (`LeaderWatch.is_leader`)."""
+        return self.adaptation is not None and self.adaptation.is_leader(term)
 
-    def _on_adaptation_token(self, sample: zenoh.Sample) -> None:
-        key, alive = str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
-        parts = key.split("/")
+    def _post_claims_changed(self) -> None:
+        self.loop.post(self._adaptation_claims_changed)
 
-        def update() -> None:
-            if parts[-3] == "member":
-                (self.adaptation_members.add if alive else self.adaptation_members.discard)(
-                    parts[-1]
-                )
-            elif parts[-2].isdigit():
-                epoch, replica = int(parts[-2]), parts[-1]
-                if alive:
-                    self.adaptation_claims[replica] = epoch
-                elif self.adaptation_claims.get(replica) == epoch:
-                    del self.adaptation_claims[replica]
-            if self._waiting_for_claim:
-                self._waiting_for_claim, self._taken = False, None
-                self._take_latest()
-
-        self.loop.post(update)
+    def _adaptation_claims_changed(self) -> None:
+        """A claim or member of the Adaptation Engine came or went (main thread): a
+        selection refused for want of its claim is acted on again."""
+        if self._waiting_for_claim:
+            self._waiting_for_claim, self._taken = False, None
+            self._take_latest()
 
     def adapt(self, msg: m.Selection) -> Outcome | None:
         checked = self.check(msg)
@@ -433,69 +458,227 @@ class ResolutionEngine(EngineProcess):
         selection, cv = checked
         noted = (msg.forced, msg.conflicts) != (self.forced, self.conflicts)
         self.forced, self.conflicts = dict(msg.forced), list(msg.conflicts)
-        if selection == self.selection and cv == self.cv:
+        readmitted = self._readmit_forced(msg)
+        if selection == self.selection and cv == self.cv and not readmitted:
             self.applied = msg.seq
             if noted:
                 self._changed()
             return None  # a heartbeat, or nothing this engine acts on
-        key = (selection, tuple(sorted(cv.items())))
-        now = time.monotonic()
-        if self.failed and self.failed[:2] == key and now - self.failed[2] < self.retry_after:
-            if noted:
-                self._changed()
-            return None
+        self.selection, self.cv = selection, cv
+        self.applied = msg.seq
+        self._backoff = RETRY_FIRST
+        return self.converge(msg)
+
+    def converge(self, msg: m.Selection | None = None) -> Outcome | None:
+        """Apply the plan from what is in effect to what was decided; what fails is undone
+        unit by unit, reported, and tried again with a growing backoff (the implementations
+        that cannot start become unavailable: the Adaptation Engine decides without them)."""
         t_recv = time.time()
         t0 = time.perf_counter()
         try:
-            target = self.target(selection, cv)
+            target = self.target(self.selection, self.cv)
             plan = r.diff(self.current, target)
         except RraError as e:
-            self.failed = (*key, now)
-            self._event(
-                "adaptation",
-                f"cannot resolve the selection: {e}",
-                msg,
-                level="error",
-                outcome="failed",
-            )
+            self._retry_later()
+            self._changed()
+            self._event("adaptation", f"cannot resolve the selection: {e}", msg,
+                        level="error", outcome="failed")  # fmt: skip
             return None
         t_plan = time.perf_counter()
         trace.mark("resolution:planned", f"{len(plan.steps)} steps")
         if EMULATED_DELAY > 0 and plan.steps:
             time.sleep(EMULATED_DELAY)  # benchmarks only: a slower pipeline, like the paper's
-        outcome = self.executor.execute(plan)
+        skip = self._unavailable_components(target)
+        outcome = self.executor.execute(plan, skip=skip)
         t_end = time.perf_counter()
+        self._took_effect(target, outcome)
         durations = phase_durations(
-            (t for f in msg.cause for t in f.reads.values()),
-            decided=msg.stamp,
+            (t for f in msg.cause for t in f.reads.values()) if msg else (),
+            decided=msg.stamp if msg else t_recv,
             received=t_recv,
             plan=t_plan - t0,
             execute=t_end - t_plan,
             switch=outcome.first_switch,
         )
-        if outcome.ok:
-            self.current, self.selection, self.cv, self.failed = target, selection, cv, None
-            self.applied = msg.seq
-            self._changed()
-            text = f"applied selection {sorted(selection)}" + (
-                f", {len(plan.steps)} step(s)" if plan.steps else " (no change to the system)"
-            )
-            self._event("adaptation", text, msg, outcome="ok", plan=outcome, durations=durations)
-        else:
-            self.failed = (*key, now)
-            self._changed()
-            state = "rolled back" if outcome.rolled_back else "ROLLBACK FAILED"
-            self._event(
-                "adaptation",
-                f"adaptation failed, {state}: {outcome.error}",
-                msg,
-                level="error",
-                outcome="rolled_back" if outcome.rolled_back else "failed",
-                plan=outcome,
-                durations=durations,
-            )
+        retry = self._failed_units(outcome, target)
+        self._changed()
+        if msg is None and not outcome.applied and all(f.skipped for f in outcome.failures):
+            return outcome  # a retry that could try nothing: nothing to report
+        self._adaptation_event(plan, outcome, msg, durations, retry)
+        if not outcome.ok:
             self._reconcile_soon = True
         return outcome
+
+    def _took_effect(self, target: SystemModel, outcome: Outcome) -> None:
+        """The effective model and what it shows, after ``outcome``."""
+        pkg = self.dep.package
+        effective = effective_model(
+            self.current, target, outcome.failed_structure, outcome.failed_parameters
+        )
+        self.effective, self.effective_cv = in_effect(
+            pkg.features, pkg.runtime, self.selection, self.effective, effective, target,
+            self.cv, self.effective_cv,
+        )  # fmt: skip
+        self.current = effective
+        self.degraded = [f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures]
+        if outcome.ok:
+            self._retry_at, self._backoff = None, RETRY_FIRST
+        else:
+            self._retry_later()
+
+    def _retry_later(self) -> float:
+        delay = self._backoff
+        self._retry_at = time.monotonic() + delay
+        self._backoff = min(self._backoff * 2, self.retry_after)
+        return delay
+
+    def _adaptation_event(self, plan, outcome: Outcome, msg, durations, retry: float) -> None:
+        decided = f"selection {sorted(self.selection)}"
+        if outcome.ok:
+            text = f"applied {decided}" + (
+                f", {outcome.steps} step(s)" if plan.steps else " (no change to the system)"
+            )
+            self._event("adaptation", text, msg, outcome="ok", plan=outcome, durations=durations)
+            return
+        failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
+        if outcome.applied:
+            head = f"adaptation partly applied ({outcome.applied} of {outcome.steps} steps)"
+            kind = "partial"
+        elif outcome.rolled_back:
+            head, kind = "adaptation failed, rolled back", "rolled_back"
+        else:
+            head, kind = "adaptation failed, ROLLBACK FAILED", "failed"
+        self._event(
+            "adaptation",
+            f"{head}: {failed}; in effect: {sorted(self.effective)}; retry in {retry:.1f} s",
+            msg,
+            level="error" if not outcome.applied else "warning",
+            outcome=kind,
+            plan=outcome,
+            durations=durations,
+        )
+
+    # ---- failure as context: unavailable implementations -----------------------------------
+    def _unavailable_components(self, target: SystemModel) -> set[str]:
+        """Components of ``target`` whose implementation there is unavailable."""
+        out = set()
+        for c in target.components:
+            need = component_needs(self.dep.configured, c.name, c.implementation)
+            if need in self.unavailable:
+                out.add(c.name)
+        return out
+
+    def _failed_units(self, outcome: Outcome, target: SystemModel) -> float:
+        """Learn from the units that failed: a node that crashed at start makes its
+        implementation unavailable at once, one that timed out after a few tries. Returns
+        the delay before the decision is tried again."""
+        for failure in outcome.failures:
+            for node, why in failure.nodes.items():
+                self._start_failed(node, why, failure, target)
+        return 0.0 if self._retry_at is None else max(0.0, self._retry_at - time.monotonic())
+
+    def _start_failed(self, node: str, why: str, failure: UnitFailure, target: SystemModel) -> None:
+        c = target.component(node) or self.dep.configured.component(node)
+        if c is None or failure.skipped or why == "unavailable":
+            return
+        need = component_needs(self.dep.configured, node, c.implementation)
+        if need is None or need in self.unavailable:
+            return
+        crashed = why.split(" ", 1)[0] in _CRASHED
+        self._timeouts[need] = self._timeouts.get(need, 0) + 1
+        if crashed or self._timeouts[need] >= TIMEOUTS_UNAVAILABLE:
+            self._mark_unavailable(need, why, c.supervision.cooldown)
+
+    def _mark_unavailable(self, need: Need, why: str, cooldown: float) -> None:
+        now = time.time()
+        self._timeouts.pop(need, None)
+        self.unavailable[need] = m.Unavailable(
+            component=need[0], implementation=need[1], reason=why, since=now,
+            failures=1, probe_at=now + cooldown,
+        )  # fmt: skip
+        what = need[0] if not need[1] else f"{need[0]} ({need[1]})"
+        features = sorted(f for f, ns in self.needs.items() if need in ns)
+        self._event(
+            "unavailable",
+            f"{what} is unavailable: {why}; the engines decide without "
+            f"{', '.join(features) or 'it'}; probe in {cooldown:g} s (or: rra retry {need[0]})",
+            None,
+            level="warning",
+        )
+
+    def _readmit(self, needs: set[Need], why: str) -> bool:
+        gone = [n for n in needs if n in self.unavailable]
+        for need in gone:
+            del self.unavailable[need]
+            self._timeouts.pop(need, None)
+            what = need[0] if not need[1] else f"{need[0]} ({need[1]})"
+            self._event("available", f"{what} is available again ({why})", None)
+        if gone:
+            self._retry_at, self._backoff = time.monotonic(), RETRY_FIRST
+        return bool(gone)
+
+    def _readmit_forced(self, msg: m.Selection) -> bool:
+        """An operator forcing a feature on re-admits what it needs."""
+        forced_on = {f for f, on in msg.forced.items() if on}
+        return self._readmit(needed_by(self.needs, forced_on), "an operator forced it on")
+
+    def retry(self, components: list[str], who: str) -> m.Reply:
+        """``rra retry``: re-admit unavailable implementations (all when none is named)."""
+        known = {c.name for c in self.dep.configured.components}
+        unknown = sorted(set(components) - known)
+        if unknown:
+            return m.Err(message=f"no component {', '.join(unknown)} in {self.dep.system}",
+                         code="unknown")  # fmt: skip
+        needs = {n for n in self.unavailable if not components or n[0] in components}
+        readmitted = sorted(n[0] for n in needs)
+        self._readmit(needs, f"operator {who or 'unknown'} asked")
+        self._changed()
+        if needs:
+            self.converge()
+        return m.Ok(result={"readmitted": readmitted,
+                            "unavailable": sorted(n[0] for n in self.unavailable)})  # fmt: skip
+
+    def _probe(self, need: Need, record: m.Unavailable) -> None:
+        """Try an unavailable implementation: start it inactive, stop it again. Success
+        re-admits it; failure backs the next probe off."""
+        component, key = need
+        c = self.dep.configured.component(component)
+        if c is None or component in self.executor.running or component in self.executor.standby:
+            return  # it runs (another implementation, or a name taken): not now
+        impl = c.implementations.get(key, c.implementation) if key else c.implementation
+        c = msgspec.structs.replace(c, implementation=impl)
+        [spec] = self._specs(self.dep.configured, [c])
+        spec = msgspec.structs.replace(spec, active=False)
+        saved, self.actuator.start_timeout = self.actuator.start_timeout, PROBE_TIMEOUT
+        try:
+            self.actuator.start([spec])
+            self.actuator.stop([spec])
+            ok, why = True, ""
+        except StepFailed as e:
+            ok, why = False, str(e)
+        finally:
+            self.actuator.start_timeout = saved
+        if ok:
+            self._readmit({need}, "a probe started it")
+        else:
+            delay = min(PROBE_MAX, max(1.0, record.probe_at - record.since) * 2)
+            self.unavailable[need] = msgspec.structs.replace(
+                record, reason=why, failures=record.failures + 1, probe_at=time.time() + delay
+            )
+        self._changed()
+
+    def _node_failed(self, st: m.NodeState) -> None:
+        """A node the system needs went FATAL (it keeps crashing): its implementation is
+        unavailable, so the engines decide without it."""
+        if st.node not in self.executor.running:
+            return
+        c = self.dep.configured.component(st.node)
+        spec = self.executor.running[st.node]
+        need = component_needs(self.dep.configured, st.node, spec.implementation)
+        if c is None or need is None or need in self.unavailable:
+            return
+        self._mark_unavailable(need, f"FATAL ({st.reason})", c.supervision.cooldown)
+        self._changed()
 
     # ---- operators' parameters -----------------------------------------------------------
     def serve(self, request: m.EngineRequest) -> m.Reply:
@@ -506,6 +689,10 @@ class ResolutionEngine(EngineProcess):
                 return self.set_params(node, params, reset)
             case m.GetState():
                 return m.Ok(result=msgspec.to_builtins(self.engine_state()))
+            case m.Retry(components=components, operator=who):
+                if not self.leading:
+                    return m.Err(message=f"{self.name} does not lead", code="not_leader")
+                return self.retry(list(components), who)
         return super().serve(request)
 
     def set_params(self, node: str, params: dict[str, Any], reset: list[str]) -> m.Reply:
@@ -556,16 +743,25 @@ class ResolutionEngine(EngineProcess):
                 finally:
                     self.executor.standby[node] = self.executor.running.pop(node)
             return None
-        outcome = self.executor.execute(r.diff(self.current, target))
+        want, have = target.component(node), self.current.component(node)
+        if want is None or have is None or want.parameters.keys() != have.parameters.keys():
+            return None  # not running as such: it starts with the new values
+        changed = msgspec.structs.replace(have, parameters=want.parameters)
+        model = msgspec.structs.replace(
+            self.current,
+            components=[changed if c.name == node else c for c in self.current.components],
+        )
+        outcome = self.executor.execute(r.diff(self.current, model))
         if outcome.ok:
-            self.current = target
+            self.current = model
         return outcome
 
     # ---- reconciliation ------------------------------------------------------------------
     def reconcile(self, reason: str = "periodic") -> Outcome | None:
-        """Make the running system match the desired model (see `rra_agent.engines.reconcile`)."""
+        """Make the running system match the model in effect (at the first deployment: the
+        decided one); see `rra_agent.engines.reconcile`."""
         try:
-            target = self.target(self.selection, self.cv)
+            target = self.current if self.deployed else self.target(self.selection, self.cv)
         except RraError as e:
             self._event("reconcile", f"cannot resolve the model: {e}", None, level="error")
             return None
@@ -614,32 +810,71 @@ class ResolutionEngine(EngineProcess):
                     outcome="ok",
                 )
             return None
-        outcome = self.executor.execute(plan)
-        if outcome.ok and missing:
+        outcome = self.executor.execute(plan, skip=self._unavailable_components(target))
+        missing = [s for s in missing if not self._unavailable_components_of([s.name])]
+        if missing:
             pre = self.executor.prestart_standby(missing)
             outcome.records.extend(pre.records)
-            if not pre.ok:
-                outcome.ok, outcome.error = False, pre.error
-        if outcome.ok:
-            self.current, self.deployed = target, True
-            self.verified.update(observed.described)
+            outcome.failures += pre.failures
+            outcome.ok = outcome.ok and pre.ok
+            outcome.error = outcome.error or pre.error
+        self.verified.update(observed.described)
+        self._failed_units(outcome, target)
+        self._settle(target, outcome, first)
+        self.deployed = True
         self._changed()
         kind = "deploy" if first and not observed.nodes else ("adopt" if first else "reconcile")
         what = (
             f"{len(self.executor.running)} node(s) running, {len(self.executor.standby)} on standby"
         )
+        failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
         self._event(
             kind,
             f"{what}, {len(plan.steps) + len(missing)} step(s) ({reason})"
             if outcome.ok
-            else f"{kind} failed: {outcome.error}",
+            else f"{kind} partly applied: {what}; not applied: {failed}",
             None,
             level="info" if outcome.ok else "error",
-            outcome="ok" if outcome.ok else "failed",
+            outcome="ok" if outcome.ok else ("partial" if outcome.applied else "failed"),
             plan=outcome,
             durations={"execute": outcome.seconds},
         )
         return outcome
+
+    def _unavailable_components_of(self, names: list[str]) -> set[str]:
+        """Which of these components run an unavailable implementation in the model."""
+        return {
+            n for n in names
+            if component_needs(self.dep.configured, n, _impl(self.dep.configured, n))
+            in self.unavailable
+        }  # fmt: skip
+
+    def _settle(self, desired: SystemModel, outcome: Outcome, first: bool) -> None:
+        """After a reconcile: what did not start is not in effect (at the first deployment
+        nothing ran before; later, a node that failed to start again is left out)."""
+        if first:
+            base = _without(desired, {c.name for c in desired.components})
+            failed, params = outcome.failed_structure, outcome.failed_parameters
+        else:
+            running = {*self.executor.running, *self.executor.standby}
+            failed = frozenset(n for n in outcome.failed_structure if n not in running)
+            if not failed:
+                return
+            base, params = _without(desired, failed), frozenset()
+        effective = effective_model(base, desired, failed, params)
+        try:
+            decided = self.target(self.selection, self.cv)
+        except RraError:
+            decided = desired
+        pkg = self.dep.package
+        self.effective, self.effective_cv = in_effect(
+            pkg.features, pkg.runtime, self.selection, frozenset() if first else self.effective,
+            effective, decided, self.cv, self.effective_cv,
+        )  # fmt: skip
+        self.current = effective
+        if not outcome.ok:
+            self.degraded = [f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures]
+            self._retry_later()
 
     def _update_hosts(self, expected, standby, observed) -> None:
         """Tell a host agent the spec it should restart a node with, where its copy differs."""
@@ -668,11 +903,17 @@ class ResolutionEngine(EngineProcess):
             standby=list(self.executor.standby.values()),
             forced=dict(self.forced),
             conflicts=list(self.conflicts),
+            effective=sorted(self.effective),
+            effective_cv=dict(self.effective_cv),
+            unavailable=sorted(self.unavailable.values(), key=lambda u: (u.component, u.since)),
+            degraded=list(self.degraded),
+            stamp=self._stamp,
         )
 
     def _changed(self) -> None:
         """The desired state changed: publish it (standbys mirror it), persist it."""
         self.version += 1
+        self._stamp = time.time()
         state = self._publish_state()
         self._persist(state)
         self.publish_status()
@@ -712,10 +953,8 @@ class ResolutionEngine(EngineProcess):
             return
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
-        self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
-        self.applied = state.applied
-        if state.selection_fence is not None:
-            self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
+        self._take_state(state)
+        self.effective_cv = {**self.cv, **self.effective_cv}
 
     def status(self) -> dict[str, Any]:
         running, standby = self.executor.running, self.executor.standby
@@ -729,6 +968,11 @@ class ResolutionEngine(EngineProcess):
             "deployment": sorted(self.dep.selection),
             "selection": sorted(self.selection),
             "cv": dict(self.cv),
+            "effective": sorted(self.effective),
+            "effective_cv": dict(self.effective_cv),
+            "params": self._params_apart(),
+            "unavailable": [msgspec.to_builtins(u) for u in self.unavailable.values()],
+            "degraded": list(self.degraded),
             "overrides": {n: dict(v) for n, v in self.overrides.items()},
             "forced": {f: "on" if on else "off" for f, on in sorted(self.forced.items())},
             "conflicts": [msgspec.to_builtins(c) for c in self.conflicts],
@@ -744,8 +988,29 @@ class ResolutionEngine(EngineProcess):
             "version": self.version if self.leading or self.mirror is None else self.mirror.version,
             "seq": self.seq,
             "deployed": self.deployed,
-            "failed": bool(self.failed),
+            # What was decided is not all in effect: a plan failed in part.
+            "failed": bool(self.degraded),
         }
+
+    def _params_apart(self) -> dict[str, dict[str, dict[str, Any]]]:
+        """Node -> {"decided": ..., "effective": ...}: the parameters whose value in the
+        decided model differs from the one the node runs with (per successful requests)."""
+        if not self.deployed:
+            return {}
+        try:
+            decided = self.target(self.selection, self.cv)
+        except RraError:
+            return {}
+        out: dict[str, dict[str, dict[str, Any]]] = {}
+        for c in decided.components:
+            spec = self.executor.running.get(c.name)
+            want = {k: p.value for k, p in c.parameters.items()}
+            have = spec.params if spec is not None else {}
+            apart = {k for k, v in want.items() if k not in have or have[k] != v}
+            if apart:
+                out[c.name] = {"decided": {k: want[k] for k in sorted(apart)},
+                               "effective": {k: have.get(k) for k in sorted(apart)}}  # fmt: skip
+        return out
 
     # ---- events ------------------------------------------------------------------------
     def _event(
@@ -819,6 +1084,12 @@ class ResolutionEngine(EngineProcess):
             congestion_control=zenoh.CongestionControl.BLOCK,
             priority=zenoh.Priority.INTERACTIVE_HIGH,
         )
+        self.adaptation = LeaderWatch(
+            session,
+            self.keys,
+            "adaptation",
+            on_change=self._post_claims_changed,
+        )
         lv = session.liveliness()
         return [
             self._state_pub,
@@ -826,12 +1097,7 @@ class ResolutionEngine(EngineProcess):
             session.declare_subscriber(self.keys.state(NAME), self._on_state),
             session.declare_subscriber(self.keys.events, self._on_event),
             lv.declare_subscriber(self.keys.host_alive_all, self._on_host, history=True),
-            lv.declare_subscriber(
-                f"{self.keys.lead('adaptation')}/*/*", self._on_adaptation_token, history=True
-            ),
-            lv.declare_subscriber(
-                self.keys.member("adaptation", "*"), self._on_adaptation_token, history=True
-            ),
+            self.adaptation,
         ]
 
     def starting(self) -> None:
@@ -864,9 +1130,10 @@ class ResolutionEngine(EngineProcess):
             return
         if self.deployed and time.monotonic() - self._state_sent >= STATE_EVERY:
             self._publish_state()
-        if self.failed and now - self.failed[2] >= self.retry_after:
-            self.failed, self._taken = None, None  # try the newest selection again
-            self._take_latest()
+        if self.deployed and self._retry_at is not None and time.monotonic() >= self._retry_at:
+            self._retry_at = None
+            self.converge()  # what the last plan could not apply, again
+        self._probe_due()
         if self._reconcile_soon or now >= self._next_reconcile:
             reason = "a host reported a change" if self._reconcile_soon else "periodic"
             self._reconcile_soon = False
@@ -874,6 +1141,14 @@ class ResolutionEngine(EngineProcess):
             self.reconcile(reason if self.deployed else "deployment")
             self._take_latest()
         self._report_deferred()
+
+    def _probe_due(self) -> None:
+        """Probe one unavailable implementation whose probe is due (one per tick)."""
+        now = time.time()
+        due = [(u.probe_at, need) for need, u in self.unavailable.items() if u.probe_at <= now]
+        if due and self.deployed:
+            _, need = min(due)
+            self._probe(need, self.unavailable[need])
 
     def _report_deferred(self) -> None:
         """Steps left for unreachable hosts: one event; the reconcile loop applies them when
@@ -895,6 +1170,27 @@ class ResolutionEngine(EngineProcess):
             self.sink.close()
         if self.viz:
             self.viz.close()
+
+
+#: The first word of a failed start that says the node itself crashed (its host agent saw
+#: it exit), not that it was slow or unreachable.
+_CRASHED = ("BACKOFF", "EXITED", "FATAL")
+
+
+def _without(model: SystemModel, names: Collection[str]) -> SystemModel:
+    """``model`` without these components and the connections that touch them."""
+    keep = [c for c in model.components if c.name not in names]
+    ends = {c.name for c in keep}
+    conns = [
+        c for c in model.connections
+        if parse_endpoint(c.source).component in ends and parse_endpoint(c.target).component in ends
+    ]  # fmt: skip
+    return msgspec.structs.replace(model, components=keep, connections=conns)
+
+
+def _impl(model: SystemModel, name: str) -> Any:
+    c = model.component(name)
+    return None if c is None else c.implementation
 
 
 def _rerun_config() -> dict[str, Any]:

@@ -231,6 +231,11 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.cli.select:configure", p),
         lazy("rra_agent.cli.select:run"),
     ),
+    "retry": Command(
+        "re-admit unavailable implementations (COMPONENT ...; none: all) and try them again",
+        lambda p: _configure("rra_agent.cli.select:configure_retry", p),
+        lazy("rra_agent.cli.select:run_retry"),
+    ),
     "view": Command(
         "open a recording (FILE.rrd or a run folder) in the Rerun viewer of this environment",
         lambda p: _configure("rra_agent.cli.view:configure", p),

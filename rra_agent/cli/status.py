@@ -222,15 +222,49 @@ def _system_section(eng: dict[str, Any] | None, wide: bool) -> list[str]:
     leader = eng.get("leader") or []
     who = f"; leader {leader[1]} (epoch {leader[0]})" if leader else ""
     lines = _field("system", f"{eng['system']} ({', '.join(eng['deployment'])}){who}", wide)
-    lines += _field("selection", ", ".join(eng["selection"]) or "-", wide)
-    cv = ", ".join(f"{k}={v:.3g}" for k, v in sorted(eng["cv"].items()))
-    lines += _field("cv", cv or "-", wide)
+    lines += effect_lines(eng, wide)
     for node, values in sorted(eng.get("overrides", {}).items()):
         set_ = ", ".join(f"{k}={v!r}" for k, v in sorted(values.items()))
         lines += _field("operator", f"{node}: {set_}", wide)
     lines += adaptation_lines(eng, wide)
-    if eng.get("failed"):
-        lines.append("last adaptation FAILED (rolled back); see `rra events`")
+    return lines
+
+
+def _cv_text(cv: dict[str, float]) -> str:
+    return ", ".join(f"{k}={v:.3g}" for k, v in sorted(cv.items())) or "-"
+
+
+def effect_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:
+    """The selection and CV values, decided and in effect (one line each where they agree),
+    the parameters that differ, the unavailable implementations and why the system is
+    degraded."""
+    decided, cv = eng["selection"], eng["cv"]
+    effective = eng.get("effective", decided)
+    effective_cv = eng.get("effective_cv", cv)
+    if effective == decided:
+        lines = _field("selection", ", ".join(decided) or "-", wide)
+    else:
+        lines = _field("decided", ", ".join(decided) or "-", wide)
+        lines += _field("in effect", ", ".join(effective) or "-", wide)
+    if effective_cv == cv:
+        lines += _field("cv", _cv_text(cv), wide)
+    else:
+        lines += _field("cv decided", _cv_text(cv), wide)
+        lines += _field("cv effect", _cv_text(effective_cv), wide)
+    for node, apart in sorted((eng.get("params") or {}).items()):
+        text = ", ".join(
+            f"{k}={apart['effective'].get(k)!r} (decided {v!r})"
+            for k, v in apart["decided"].items()
+        )
+        lines += _field("params", f"{node}: {text}", wide)
+    for u in eng.get("unavailable") or []:
+        what = u["component"] + (f" ({u['implementation']})" if u.get("implementation") else "")
+        probe = max(0.0, u.get("probe_at", 0.0) - time.time())
+        lines += _field("unavailable", f"{what}: {u['reason']} (probe in {probe:.0f} s)", wide)
+    for why in eng.get("degraded") or []:
+        lines += _field("degraded", why, wide)
+    if eng.get("degraded"):
+        lines.append("what was decided is not all in effect; see `rra events`, `rra retry`")
     return lines
 
 

@@ -17,6 +17,11 @@ that host's agent (gone when its link is lost, within the bus lease; back when i
 each transition is published as a measurement and as an adaptation event
 (``host_unreachable`` / ``host_reachable``).
 
+Failure is context: an ``available: COMPONENT`` measurement is false while the Run-time
+Resolution Engine leader's state lists an implementation of that component as unavailable
+(it could not start, or kept crashing), true otherwise; its first value comes with the first
+state the leader publishes (at least one a second).
+
 Publishing: a measurement is published when its value changes, and unchanged at most every
 quarter of its ``max_age_ms`` (every second without one), so that the rules never see it
 stale while its sources live. Sending every computed value (400 Hz of an unchanged
@@ -36,6 +41,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
 import zenoh
 
 from rra_agent import trace
@@ -47,6 +53,7 @@ from rra_agent.core.resolution import topic_of
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
+from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
 from rra_agent.models.pkgimport import add_package_path
 from rra_agent.models.system import parse_endpoint
@@ -58,6 +65,7 @@ NAME = "monitor"
 REFRESH = 1.0
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
+_STATE = m.Codec[m.StateMessage](m.StateMessage)
 
 
 def import_dotted(dotted: str) -> Any:
@@ -131,6 +139,13 @@ class MonitorProcess(EngineProcess):
             if meas.reachable is not None:
                 self.reachability.setdefault(meas.reachable, []).append(meas.name)
         self.reachable: dict[str, bool] = {}
+        #: Availability measurements by component, and whether each is available now.
+        self.availability: dict[str, list[str]] = {}
+        for meas in dep.package.measurements.measurements:
+            if meas.available is not None:
+                self.availability.setdefault(meas.available, []).append(meas.name)
+        self.available: dict[str, bool] = {}
+        self.resolution: LeaderWatch | None = None
         self._events: zenoh.Publisher | None = None
 
     def source_key(self, source: str) -> str:
@@ -218,6 +233,33 @@ class MonitorProcess(EngineProcess):
         if not first or not alive:
             self._host_event(host, alive)
 
+    # ---- availability (failure as context) ------------------------------------------------
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        raw = sample.payload.to_bytes()
+        if too_large("state", len(raw)):
+            self.drop("too_large", f"engine state of {len(raw)} bytes")
+            return
+        try:
+            state = _STATE.decode(raw)
+        except (msgspec.DecodeError, msgspec.ValidationError) as e:
+            self.drop("malformed", f"engine state: {e}")
+            return
+        if self.resolution is None or not self.resolution.is_leader(state.fence):
+            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
+            return
+        self.loop.post(lambda: self._availability(state.unavailable))
+
+    def _availability(self, unavailable: list[m.Unavailable]) -> None:
+        """A new value of each availability measurement whose component changed."""
+        gone = {u.component for u in unavailable}
+        for component, names in self.availability.items():
+            alive = component not in gone
+            if self.available.get(component) == alive:
+                continue
+            self.available[component] = alive
+            for name in names:
+                self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))
+
     def on_leadership(self, leading: bool) -> None:
         """A new leader publishes what it knows at once: the newest value of each measurement
         it computed while no replica led (at start-up the sources publish before the
@@ -227,13 +269,17 @@ class MonitorProcess(EngineProcess):
         seen since)."""
         if not leading:
             return
-        reachability = {n for names in self.reachability.values() for n in names}
+        derived = {n for names in self.reachability.values() for n in names}
+        derived |= {n for names in self.availability.values() for n in names}
         with self.lock:
-            latest = [msg for name, msg in self.latest.items() if name not in reachability]
+            latest = [msg for name, msg in self.latest.items() if name not in derived]
         for msg in latest:
             self._publish(msg)
         for host, alive in self.reachable.items():
             for name in self.reachability[host]:
+                self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))
+        for component, alive in self.available.items():
+            for name in self.availability[component]:
                 self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))
 
     def _host_event(self, host: str, alive: bool) -> None:
@@ -290,6 +336,12 @@ class MonitorProcess(EngineProcess):
                 )
             )
             self._seed_hosts(session)
+        if self.availability:
+            self.resolution = LeaderWatch(session, self.keys, "resolution")
+            entities += [
+                self.resolution,
+                session.declare_subscriber(self.keys.state("resolution"), self._on_state),
+            ]
         return entities
 
     def status(self) -> dict[str, Any]:

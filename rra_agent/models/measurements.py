@@ -16,6 +16,11 @@ A measurement may instead be a host's reachability (``reachable: base_station``,
 its link is lost (within the bus lease). The Context Monitor publishes it like any other, so
 rules can react to a partition (e.g. select an on-board planner when the base station is
 gone).
+
+Or a component's availability (``available: camera``, type ``bool``): false while an
+implementation of that component is unavailable (it could not start, or kept crashing; the
+Run-time Resolution Engine says so), true otherwise. Failure is context: rules may read it
+like any measurement.
 """
 
 from __future__ import annotations
@@ -59,6 +64,8 @@ class Measurement(FrozenModel, frozen=True):
     sources: list[str] = []
     #: ... or a host of the system model: true while it is reachable (type bool).
     reachable: str | None = None
+    #: ... or a component of the system model: false while it is unavailable (type bool).
+    available: str | None = None
     #: Field of the source sample to take when there is no function (e.g. ``level``).
     field: str | None = None
     function: str | None = None
@@ -69,16 +76,23 @@ class Measurement(FrozenModel, frozen=True):
     description: str | None = None
 
     def __post_init__(self) -> None:
-        given = (self.source is not None) + bool(self.sources) + (self.reachable is not None)
+        given = (
+            (self.source is not None)
+            + bool(self.sources)
+            + (self.reachable is not None)
+            + (self.available is not None)
+        )
         if given != 1:
             raise ValueError(
-                "a measurement needs exactly one of 'source', 'sources' and 'reachable'"
+                "a measurement needs exactly one of 'source', 'sources', 'reachable' and "
+                "'available'"
             )
-        if self.reachable is not None:
+        derived = "reachable" if self.reachable is not None else "available"
+        if self.reachable is not None or self.available is not None:
             if self.type != "bool":
-                raise ValueError("a 'reachable' measurement is of type bool")
+                raise ValueError(f"a '{derived}' measurement is of type bool")
             if self.field is not None or self.function is not None:
-                raise ValueError("a 'reachable' measurement has no field or function")
+                raise ValueError(f"a '{derived}' measurement has no field or function")
         for s in self.inputs:
             parse_endpoint(s)
         if len(self.inputs) > 1 and self.function is None:

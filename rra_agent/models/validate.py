@@ -409,6 +409,12 @@ class _Checker:
                 msg = unknown_name("host", m.reachable, hosts)
                 self.error("measurements", (*path, "reachable"), msg)
             return
+        if m.available is not None:
+            names = {c.name for c in self.pkg.system.components}
+            if m.available not in names:
+                msg = unknown_name("component", m.available, names)
+                self.error("measurements", (*path, "available"), msg)
+            return
         ports: list[Port | None] = []
         for j, src in enumerate(m.inputs):
             where = (*path, "source") if m.source is not None else (*path, "sources", j)

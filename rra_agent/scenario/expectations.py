@@ -18,6 +18,12 @@ expectation is a pure function of the recorded data. The grammar is in docs/scen
 Times are seconds since the deployment (the resolution engine's ``deploy`` event). Recorded
 values are step functions of time: a measurement, CV value, parameter, feature selection or
 node state holds from the sample that set it until the next one.
+
+Effect, not intent: ``feature F selected`` and ``cv X ...`` check what is *in effect* (the
+run-time selection and CV values the running system shows, as the Run-time Resolution Engine
+publishes them in its state); ``decided feature F selected`` and ``decided cv X ...`` check
+what the Adaptation Engine decided. They differ while a plan is applied in part (a node that
+cannot start).
 """
 
 from __future__ import annotations
@@ -162,12 +168,15 @@ class Quantity:
     path: tuple[str | int, ...] = ()
     #: For ``data``: the port's topic (bound by the loader; ``component/port`` by default).
     topic: str = ""
+    #: For ``cv``: what was decided, not what is in effect (``decided cv X``).
+    decided: bool = False
 
     def __str__(self) -> str:
+        first = "decided " if self.decided else ""
         if self.kind == "name":
-            return self.name
+            return first + self.name
         tail = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in self.path)
-        return f"{self.kind} {self.name}{tail}"
+        return f"{first}{self.kind} {self.name}{tail}"
 
 
 @dataclass(frozen=True)
@@ -205,6 +214,8 @@ class Expectation:
 class FeatureExpectation(Expectation):
     feature: str = ""
     selected: bool = True
+    #: What the Adaptation Engine decided, not what is in effect.
+    decided: bool = False
 
 
 @dataclass(frozen=True)
@@ -361,6 +372,10 @@ class _Parser:
         first = self.peek()
         if first.kind == "eof":
             raise self.error("empty expectation")
+        decided = first.kind == "name" and first.text == "decided"
+        if decided:
+            self.next()
+            first = self.peek()
         if first.kind == "name" and first.text == "feature":
             exp = self.feature(location)
         elif first.kind == "name" and first.text == "node":
@@ -375,7 +390,18 @@ class _Parser:
             exp = self.value(location)
         if self.peek().kind != "eof":
             raise self.error("unexpected text after the expectation")
+        if decided:
+            exp = self._decided(exp)
         return dataclasses.replace(exp, refs=tuple(self.refs))
+
+    def _decided(self, exp: Expectation) -> Expectation:
+        """``decided ...``: a feature or a CV value as decided."""
+        match exp:
+            case FeatureExpectation():
+                return dataclasses.replace(exp, decided=True)
+            case ValueExpectation(quantity=q) if q.kind in ("cv", "name"):
+                return dataclasses.replace(exp, quantity=dataclasses.replace(q, decided=True))
+        raise ExpectationError("'decided' applies to a feature or a CV value", 0)
 
     def feature(self, location: Location | None) -> Expectation:
         self.expect("feature")
@@ -670,6 +696,14 @@ class DataSample(msgspec.Struct, array_like=True):
     value: Any
 
 
+class Effect(msgspec.Struct, array_like=True):
+    """What was in effect from ``stamp`` on (the Run-time Resolution Engine's state)."""
+
+    stamp: float
+    features: list[str]
+    cv: dict[str, float]
+
+
 class ParamSample(msgspec.Struct, array_like=True):
     stamp: float
     node: str
@@ -701,6 +735,8 @@ class Recording(msgspec.Struct, kw_only=True):
     swap_pairs: list[tuple[str, str]] = []
     events: list[m.EventMessage] = []
     selections: list[m.SelectionMessage] = []
+    #: What was in effect, each time it changed (empty: taken as what was decided).
+    effects: list[Effect] = []
     measurements: list[m.Measurement] = []
     data: list[DataSample] = []
     params: list[ParamSample] = []
@@ -710,6 +746,24 @@ class Recording(msgspec.Struct, kw_only=True):
     #: Every node as its host agent listed it at the end of the run (``ListNodes``): what a
     #: host did while it was cut off from the recorder shows here (a new pid).
     nodes: list[m.NodeState] = []
+
+
+def _steps(
+    rec: Recording, changes: list[tuple[float, list[str], dict[str, float]]], dep: frozenset[str]
+) -> tuple[Signal, dict[str, Signal]]:
+    """The feature selection and each CV value as step signals, from the initial ones."""
+    features: Signal = [(-math.inf, frozenset(rec.initial_features) | dep)]
+    cv: dict[str, Signal] = {k: [(-math.inf, v)] for k, v in rec.initial_cv.items()}
+    for stamp, names, values in changes:
+        t = stamp - rec.t0
+        feats = frozenset(names) | dep
+        if feats != features[-1][1]:
+            features.append((t, feats))
+        for k, v in values.items():
+            sig = cv.setdefault(k, [])
+            if not sig or sig[-1][1] != v:
+                sig.append((t, v))
+    return features, cv
 
 
 def save_recording(rec: Recording) -> bytes:
@@ -744,17 +798,18 @@ class Index:
         selections = sorted(
             (s for s in rec.selections if isinstance(s, m.Selection)), key=lambda s: s.stamp
         )
-        self.features: Signal = [(-math.inf, frozenset(rec.initial_features) | dep)]
-        self.cv: dict[str, Signal] = {k: [(-math.inf, v)] for k, v in rec.initial_cv.items()}
-        for s in selections:
-            t = s.stamp - t0
-            feats = frozenset(s.features) | dep
-            if feats != self.features[-1][1]:
-                self.features.append((t, feats))
-            for k, v in s.cv.items():
-                sig = self.cv.setdefault(k, [])
-                if not sig or sig[-1][1] != v:
-                    sig.append((t, v))
+        #: What was decided (the Adaptation Engine's selections) ...
+        self.decided_features, self.decided_cv = _steps(
+            rec, [(s.stamp, s.features, s.cv) for s in selections], dep
+        )
+        #: ... and what was in effect (the Run-time Resolution Engine's state).
+        effects = sorted(rec.effects, key=lambda e: e.stamp)
+        if effects:
+            self.features, self.cv = _steps(
+                rec, [(e.stamp, e.features, e.cv) for e in effects], dep
+            )
+        else:  # a recording without states: what was decided stands for it
+            self.features, self.cv = self.decided_features, self.decided_cv
         self.measurements: dict[str, Signal] = {}
         self.occurrences: list[Occurrence] = []
         for ms in sorted(rec.measurements, key=lambda x: x.stamp):
@@ -1052,7 +1107,7 @@ def quantity_signal(idx: Index, q: Quantity) -> Signal:
         case "measurement":
             return idx.measurements.get(q.name, [])
         case "cv":
-            return idx.cv.get(q.name, [])
+            return (idx.decided_cv if q.decided else idx.cv).get(q.name, [])
         case "param":
             return [(t, field_of(v, q.path)) for t, v in idx.params.get(q.name, [])]
         case "implementation":
@@ -1066,9 +1121,10 @@ def quantity_signal(idx: Index, q: Quantity) -> Signal:
 def evaluate(exp: Expectation, idx: Index) -> Outcome:
     """Decide one expectation against a recording (pure)."""
     match exp:
-        case FeatureExpectation(feature=f, selected=sel):
+        case FeatureExpectation(feature=f, selected=sel, decided=decided):
+            signal = idx.decided_features if decided else idx.features
             return check_signal(
-                idx, idx.features, exp.when, lambda s: (f in s) == sel, _feature_show(f)
+                idx, signal, exp.when, lambda s: (f in s) == sel, _feature_show(f, decided)
             )
         case StateExpectation(node=n, state=st):
             sig = idx.states.get(n, [(-math.inf, "STOPPED")])
@@ -1104,8 +1160,9 @@ def evaluate(exp: Expectation, idx: Index) -> Outcome:
     raise TypeError(f"unknown expectation {exp!r}")
 
 
-def _feature_show(f: str) -> Callable[[Any], str]:
-    return lambda s: "selected" if f in s else "not selected"
+def _feature_show(f: str, decided: bool = False) -> Callable[[Any], str]:
+    what = ("decided", "not decided") if decided else ("selected", "not selected")
+    return lambda s: what[0] if f in s else what[1]
 
 
 def _check_event(idx: Index, exp: EventExpectation) -> Outcome:

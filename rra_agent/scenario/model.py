@@ -568,6 +568,9 @@ class _Loader:
         pkg = self.pkg
         measurements = [ms.name for ms in pkg.measurements.measurements]
         cvs = [n for n, (_, a) in pkg.features.attributes.items() if a.kind == "cv"]
+        if q.decided and not (q.kind == "cv" or (q.kind == "name" and q.name in cvs)):
+            self.err(f"'decided' applies to a feature or a CV value, not to {q.name!r}", loc)
+            return None
         match q.kind:
             case "name":
                 alias = self.scenario.quantities.get(q.name)
@@ -576,7 +579,7 @@ class _Loader:
                 if q.name in measurements:
                     return x.Quantity("measurement", q.name)
                 if q.name in cvs:
-                    return x.Quantity("cv", q.name)
+                    return x.Quantity("cv", q.name, decided=q.decided)
                 known = [*self.scenario.quantities, *measurements, *cvs]
                 self.err(unknown_name("quantity", q.name, known), loc)
             case "measurement":

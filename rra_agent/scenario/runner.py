@@ -60,6 +60,7 @@ MARKER_ENV = "RRA_SCENARIO_RUN"
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
+_STATE = m.Codec[m.StateMessage](m.StateMessage)
 _INJ = m.Codec[m.Injection](m.Injection)
 _SIGNALS = {"kill": signal.SIGKILL, "freeze": signal.SIGSTOP, "resume": signal.SIGCONT}
 
@@ -181,6 +182,8 @@ class Recorder:
         self.lock = threading.Lock()
         self.events: list[m.EventMessage] = []
         self.selections: list[m.SelectionMessage] = []
+        self.effects: list[x.Effect] = []
+        self._effect_seen: tuple[int, str, int] | None = None
         self.measurements: list[m.Measurement] = []
         self.data: list[x.DataSample] = []
         self.params: list[x.ParamSample] = []
@@ -212,6 +215,21 @@ class Recorder:
             msg = _SEL.decode(sample.payload.to_bytes())
             with self.lock:
                 self.selections.append(msg)
+
+    def on_state(self, sample: Any) -> None:
+        """What is in effect, from the Run-time Resolution Engine leader's state (each
+        version once: the leader republishes it unchanged every second)."""
+        with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+            st = _STATE.decode(sample.payload.to_bytes())
+            if not st.stamp:
+                return
+            version = (st.fence.epoch, st.fence.leader, st.version)
+            with self.lock:
+                if version != self._effect_seen:
+                    self._effect_seen = version
+                    self.effects.append(
+                        x.Effect(st.stamp, list(st.effective), dict(st.effective_cv))
+                    )
 
     def on_ctx(self, sample: Any) -> None:
         with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
@@ -370,6 +388,7 @@ class _Run:
             subs = [
                 s.declare_subscriber(keys.events, rec.on_event),
                 s.declare_subscriber(keys.selection, rec.on_selection),
+                s.declare_subscriber(keys.state("resolution"), rec.on_state),
                 s.declare_subscriber(keys.ctx_all, rec.on_ctx),
             ]
             topics = self.case.data_topics()
@@ -587,6 +606,7 @@ class _Run:
                 swap_pairs=list(case.swap_pairs),
                 events=list(rec.events),
                 selections=list(rec.selections),
+                effects=list(rec.effects),
                 measurements=list(rec.measurements),
                 data=list(rec.data),
                 params=list(rec.params),

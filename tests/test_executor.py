@@ -467,6 +467,8 @@ def test_a_component_that_cannot_start_does_not_hold_back_the_speed_limit():
     before, after = agv(camera=False, human_zone=False), agv(camera=True, human_zone=True)
     out = ex.execute(r.diff(before, after))
     assert not out.ok and out.partial and out.rolled_back
+    # the speed limit first: it never waits for a start (seconds, or a timeout)
+    assert act.calls[0] == ("params", "motion", {"max_speed": 0.5})
     assert ex.running["motion"].params["max_speed"] == 0.5
     assert "beacon" in ex.running and "lidar" in ex.running and "camera" not in ex.running
     assert ex.running["perception"].ports["scan"].keys == [K.data("lidar/scan")]

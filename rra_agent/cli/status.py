@@ -302,7 +302,7 @@ def _last_failure(n: dict[str, Any], st: dict[str, Any]) -> tuple[float, str] | 
     f = _failure(st.get("failure"))
     if f is not None:
         errors = (st.get("counters") or {}).get("errors", 1)
-        found.append((f.stamp, f"runs on after {errors} exception(s); {failure.summary(f)}"))
+        found.append((f.stamp, f"runs on after {errors} errors: {failure.summary(f)}"))
     return max(found, key=lambda x: x[0]) if found else None
 
 

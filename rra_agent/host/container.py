@@ -7,9 +7,11 @@ stopped like a node) and loads and unloads its components one by one with `LoadN
 node process has: its own ports (its own publishers and subscribers on the container's one
 Zenoh session), parameters, control endpoint (``rra/<system>/node/<component>/ctl``),
 liveliness token (its readiness) and state export; starts, stops, swaps and rewires are per
-component. A component's callback that raises is counted and logged by its `NodeCore`; its
-neighbours go on. One process for many components saves the interpreter, the session and the
-scheduling of a process per component (the memory and the switch of a hundred components).
+component. A component's callback that raises (even ``sys.exit``) is counted and logged with
+its traceback by its `NodeCore`; one that raises while it is loaded does not start and is
+answered with its `Failure`; either way its neighbours go on. One process for many
+components saves the interpreter, the session and the scheduling of a process per component
+(the memory and the switch of a hundred components).
 
 What a container loads is what its host agent's model declares: the container's own spec
 (from the host agent, never from the bus) lists its members' implementations and parameter

@@ -6,8 +6,10 @@ Either way the node becomes a direct child of this process (a child subreaper), 
 is *reaped here*: `reap` returns every exit since the last call, and the host agent calls it
 whenever SIGCHLD wakes its loop, so a death is known at once, never from a lease. Each node
 gets its spec in ``RRA_NODE_SPEC``, the bus configuration in ``RRA_BUS_CONFIG``, a heartbeat
-slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), and its output in
-``<log_dir>/<node>.log``.
+slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), its output in ``<log_dir>/<node>.log``
+and the file for its failure report in ``RRA_FAILURE_REPORT`` (``<log_dir>/<node>.failure``,
+`rra_agent.failure`), read when it is reaped (``failures``; for an external command that
+failed, the last lines of its output instead).
 
 A command among ``forked`` (the host agent's own ``python -m MODULE ...`` processes: ``rra
 up``'s engines) is run in the forked process, not ``exec``ed

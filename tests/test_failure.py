@@ -218,8 +218,14 @@ def test_rra_events_shows_the_failure_under_its_node_line() -> None:
     assert lines[0].endswith("node  h1/camera: STARTING -> BACKOFF (exited with status 1)")
     assert lines[1:] == [f"    {x}" for x in failure.details(CAMERA)]
     wordy = m.Failure(type="ValueError", message="word " * 60, where="nodes/n.py:1", log="/l")
-    narrow = format_event(m.NodeState(**{**_fields(STATE), "failure": wordy}), wide=False)
-    assert max(map(len, narrow.splitlines())) <= WIDTH
+    fatal = failure.reason("exited with status 1; 5 restarts within 60 s; retrying in 30 s", wordy)
+    narrow = format_event(
+        m.NodeState(**{**_fields(STATE), "state": "FATAL", "reason": fatal, "failure": wordy}),
+        wide=False,
+    ).splitlines()
+    assert max(map(len, narrow)) <= WIDTH
+    assert narrow[1].startswith(" " * 19)  # the transition's own line goes on, indented
+    assert narrow[2].startswith("    ValueError: word word")
 
 
 def _fields(st: m.NodeState) -> dict[str, Any]:

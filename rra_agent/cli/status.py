@@ -437,7 +437,8 @@ def format_event(ev: m.AdaptationEvent | m.NodeState, *, wide: bool = True) -> s
         case m.NodeState():
             reason = failure.without_summary(ev.reason, ev.failure)
             why = f" ({reason})" if reason else ""
-            lines = [(f"{t} node  {ev.host}/{ev.node}: {ev.previous} -> {ev.state}{why}", "")]
+            head = f"{t} node  {ev.host}/{ev.node}: {ev.previous} -> {ev.state}{why}"
+            lines = [(head, " " * 19)]
             if ev.failure is not None:  # what the node raised, where, and its log
                 lines += [(f"    {x}", " " * 6) for x in failure.details(ev.failure)]
         case m.AdaptationEvent():

@@ -32,6 +32,7 @@ from rra_agent.node import decode_data, encode_data
 PACKAGE = Path(__file__).parent / "data" / "crashy"
 NODES = (PACKAGE / "crashy_nodes.py").read_text()
 K = Keys("crashy")
+pytest_plugins = ["pytester"]
 WIDTH = 100
 #: Waits are conditions with deadlines; these are generous for ``--cpu-hog``.
 DEADLINE = 60
@@ -346,24 +347,30 @@ SCENARIO = """\
 name: camera
 description: Level above 5 selects Filtered, whose node cannot open its camera
 package: pkg
-duration: 3
+duration: 6
 timeline:
-  - {at: 1.0, name: high, set_params: {node: source, params: {value: 7.0}}}
+  - {at: 0.5, name: high, set_params: {node: source, params: {value: 7.0}}}
 expect:
   - no orphan process
 """
+
+
+def camera_package(root: Path) -> Path:
+    """A copy of relay_system whose ``filtered`` node cannot open its camera (crashy_nodes)."""
+    pkg = root / "pkg"
+    shutil.copytree(RELAY, pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(PACKAGE / "crashy_nodes.py", pkg)
+    filtered = "  - name: filtered\n    implementation: "
+    plant(pkg, "system.yaml", f"{filtered}rra_agent.nodes.generic.Relay",
+          f"{filtered}crashy_nodes.Camera")  # fmt: skip
+    return pkg
 
 
 def test_rra_test_keeps_a_crashed_nodes_log_with_the_verdict(tmp_path):
     """relay_system whose ``filtered`` node cannot open its camera: the case passes (it
     expects no more than a clean stop), and still the verdict names what filtered raised
     and where, and its log is kept beside the verdict, the rest of the run folder gone."""
-    pkg = tmp_path / "pkg"
-    shutil.copytree(RELAY, pkg, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(PACKAGE / "crashy_nodes.py", pkg)
-    filtered = "  - name: filtered\n    implementation: "
-    plant(pkg, "system.yaml", f"{filtered}rra_agent.nodes.generic.Relay",
-          f"{filtered}crashy_nodes.Camera")  # fmt: skip
+    camera_package(tmp_path)
     (tmp_path / "camera.scenario.yaml").write_text(SCENARIO)
     out = tmp_path / "runs"
     r = subprocess.run(
@@ -386,3 +393,22 @@ def test_rra_test_keeps_a_crashed_nodes_log_with_the_verdict(tmp_path):
     assert "Traceback (most recent call last):" in kept.read_text()
     assert sorted(p.name for p in (out / "camera").iterdir()) == ["crashed", "results.txt"]
     assert "node filtered crashed" in (out / "camera" / "results.txt").read_text()
+
+
+def test_the_pytest_plugin_reports_a_crash_and_keeps_its_log(pytester: pytest.Pytester) -> None:
+    """The same case as a pytest item: it passes, its report names what filtered raised,
+    and its run folder keeps only the crashed node's log and the verdict."""
+    camera_package(pytester.path)
+    (pytester.path / "camera.scenario.yaml").write_text(SCENARIO)
+    runs = pytester.path / "runs"
+    pytester.makeini(f"[pytest]\nrra_scenario_runs = {runs}\n")
+    result = pytester.runpytest_subprocess(
+        "-p", "no:rra", "-p", "rra_agent.scenario.plugin", "-p", "no:cacheprovider", "-rA"
+    )
+    result.assert_outcomes(passed=1)
+    out = result.stdout.str()
+    assert "camera: node filtered crashed (" in out
+    assert "RuntimeError: camera /dev/video0 not found (crashy_nodes.py:" in out
+    [run] = runs.iterdir()
+    assert sorted(p.name for p in run.iterdir()) == ["crashed", "results.txt"]
+    assert "Traceback (most recent call last):" in (run / "crashed" / "filtered.log").read_text()

@@ -8,7 +8,9 @@ Write a component as a `Node` subclass. A node's logic only sees a `NodeContext`
   `rra_agent.bus.runtime.NodeRuntime`. The node's `NodeSpec` comes as JSON in
   ``RRA_NODE_SPEC`` (or ``--spec FILE``) and the bus configuration in ``RRA_BUS_CONFIG``;
   both are set by the host agent that starts it. Exit status: 0 after a clean shutdown, 2
-  when the spec or implementation is unusable (the supervisor does not restart it);
+  when the spec or implementation is unusable (the supervisor does not restart it), 1 when
+  an exception of the node's code ended it (traceback in its log, a report for its host
+  agent: `rra_agent.failure`);
 - in a unit test, without any bus: `NodeHarness` (like dora's MockNode).
 
 `NodeCore` is the transport-independent middle: it owns the node instance, its parameters,
@@ -29,7 +31,7 @@ from typing import Any, ClassVar, Protocol
 
 import msgspec
 
-from rra_agent import trace
+from rra_agent import failure, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD, Counters, RateLimitedLog
 from rra_agent.bus.messages import NodeSpec
@@ -190,6 +192,18 @@ class NodeError(RraError):
     """A control request a node refuses (unknown port or parameter, bad value)."""
 
 
+#: The node hook a control request runs (what a `Failure` says the node was doing).
+_HOOKS: dict[type, str] = {
+    m.SetParams: "on_params",
+    m.ImportState: "import_state",
+    m.ExportState: "export_state",
+    m.Activate: "activate",
+    m.Deactivate: "on_active",
+}
+#: Distinct places of exceptions whose whole traceback a node logs (then one line each).
+_TRACED_SITES = 64
+
+
 def load_node_class(path: str, folders: Iterable[str] = ()) -> type[Node]:
     """Import ``pkg.module.ClassName`` (or ``pkg.module:ClassName``) and check it is a Node.
 
@@ -208,7 +222,11 @@ def load_node_class(path: str, folders: Iterable[str] = ()) -> type[Node]:
     try:
         module = importlib.import_module(mod_name)
     except ImportError as e:
-        raise NodeError(f"cannot import {mod_name!r} for implementation {path!r}: {e}") from None
+        err = NodeError(f"cannot import {mod_name!r} for implementation {path!r}: {e}")
+        raise failure.tag(err, "import") from e
+    except Exception as e:  # the module itself raised (or does not compile)
+        failure.tag(e, "import")
+        raise
     hidden = shadowed_problem(module, folders)
     if hidden is not None:
         raise NodeError(f"implementation {path!r}: {hidden}")
@@ -245,6 +263,7 @@ class NodeCore:
         logger: Callable[[str], None] | None = None,
         pid: int = 0,
         monotonic: Callable[[], float] = time.monotonic,
+        contained: bool = False,
     ) -> None:
         self.spec = spec
         self.transport = transport
@@ -273,22 +292,46 @@ class NodeCore:
         self.counters = Counters()
         self.published = 0
         self.errors = 0
+        #: What node code may raise without ending the process: in a container
+        #: (``contained``), a component's ``sys.exit`` too (it must not end its neighbours).
+        self._catch: tuple[type[BaseException], ...] = (
+            (Exception, SystemExit) if contained else (Exception,)
+        )
+        #: The newest exception of node code the node went on after (`Stats`), and the
+        #: exception of ``on_stop`` if it raised (the node's last word to its host agent).
+        self.last_error: m.Failure | None = None
+        self.stop_failure: m.Failure | None = None
+        #: Where node code raised already, (during, type, where): the first time the log gets
+        #: the whole traceback, later times a rate-limited line.
+        self._traced: set[tuple[str, str, str]] = set()
         #: The newest leader fence accepted (requests with older ones are refused).
         self.fence: Term | None = (spec.fence.epoch, spec.fence.leader) if spec.fence else None
         self._refusals = RateLimitedLog(self.log)
         self.stop_requested = threading.Event()
-        self.node = node_cls(NodeContext(self))
+        try:
+            self.node = node_cls(NodeContext(self))
+        except BaseException as e:
+            failure.tag(e, "constructor")
+            raise
 
     # ---- lifecycle ---------------------------------------------------------------------
     def start(self) -> None:
+        """``import_state`` (of the spec's state, if any) and ``on_start``; what they raise
+        is marked with which it was and propagates (the node does not start)."""
         with self.lock:
-            if self.spec.state is not None:
-                self.node.import_state(self.spec.state)
-            self.node.on_start()
+            during = "import_state"
+            try:
+                if self.spec.state is not None:
+                    self.node.import_state(self.spec.state)
+                during = "on_start"
+                self.node.on_start()
+            except BaseException as e:
+                failure.tag(e, during)
+                raise
 
     def stop(self) -> None:
         with self.lock:
-            self._guard("on_stop", self.node.on_stop)
+            self.stop_failure = self._guard("on_stop", self.node.on_stop)
 
     @property
     def rate_hz(self) -> float:
@@ -339,9 +382,8 @@ class NodeCore:
                 return
             self.counters.received += 1
             self.node.on_message(port, data, stamp)
-        except Exception as e:  # a bug in node code must not reach the bus callback
-            self.errors += 1
-            self.log(f"on_message raised {type(e).__name__}: {e}")
+        except self._catch as e:  # a bug in node code must not reach the bus callback
+            self._error("on_message", e)
         finally:
             lock.release()
 
@@ -411,9 +453,10 @@ class NodeCore:
                 return self._handle(request)
             except NodeError as e:
                 return m.Err(message=str(e), code="refused")
-            except Exception as e:  # a bug in node code must not kill the control endpoint
-                self.errors += 1
-                return m.Err(message=f"{type(e).__name__}: {e}", code="node_error")
+            except self._catch as e:  # a bug in node code must not kill the control endpoint
+                during = _HOOKS.get(type(request), request.__struct_config__.tag)
+                f = self._error(str(during), e)
+                return m.Err(message=f"{type(e).__name__}: {e}", code="node_error", failure=f)
 
     def _handle(self, request: m.NodeRequest) -> m.Reply:
         fence = getattr(request, "fence", None)
@@ -544,20 +587,39 @@ class NodeCore:
         c.extra.update(published=self.published, errors=self.errors)
         if self.fence is not None:
             c.extra["fence_epoch"] = self.fence[0]
-        return c.stats(self.spec.name, "node", self.pid)
+        return msgspec.structs.replace(
+            c.stats(self.spec.name, "node", self.pid), failure=self.last_error
+        )
 
     # ---- helpers -----------------------------------------------------------------------
-    def _guard(self, what: str, fn: Callable[..., Any], *args: Any) -> None:
-        """Run node code; an exception is counted and logged, never propagated to the bus."""
+    def _guard(self, what: str, fn: Callable[..., Any], *args: Any) -> m.Failure | None:
+        """Run node code; an exception is counted and logged (its `Failure` returned), never
+        propagated to the bus."""
         try:
             fn(*args)
-        except Exception as e:
-            self.errors += 1
-            self.log(f"{what} raised {type(e).__name__}: {e}")
+        except self._catch as e:
+            return self._error(what, e)
+        return None
+
+    def _error(self, what: str, e: BaseException) -> m.Failure:
+        """Node code raised ``e`` in ``what`` and the node goes on: count it, keep it for
+        `Stats`, log its traceback the first time it is raised there (then one line at most
+        every 10 s, with the count)."""
+        self.errors += 1
+        f = self.last_error = failure.describe(e, what, self.spec.path)
+        site = (f.during, f.type, f.where)
+        if site in self._traced or len(self._traced) >= _TRACED_SITES:
+            self._refusals(f"{what} raised", failure.summary(f))
+        else:
+            self._traced.add(site)
+            self.log(f"{what} raised {failure.summary(f)}\n{failure.formatted(e)}")
+        return f
 
     def log(self, message: str) -> None:
+        """A line (or lines, each prefixed with the node's name) in the node's log."""
         if self._logger is not None:
-            self._logger(f"[{self.spec.name}] {message}")
+            prefix = f"[{self.spec.name}] "
+            self._logger(prefix + message.replace("\n", "\n" + prefix))
 
 
 class _CaptureTransport:
@@ -663,7 +725,10 @@ class NodeHarness:
 
 # ---- the process entry point ----------------------------------------------------------
 SPEC_ENV = "RRA_NODE_SPEC"
+#: Exit status of a node whose spec or implementation is unusable (not restarted at once).
 EXIT_CONFIG = 2
+#: Exit status of a node ended by an exception of its code (as Python's own).
+EXIT_FAILED = 1
 
 
 def read_spec(path: str | None) -> NodeSpec:
@@ -682,8 +747,24 @@ def run_node(spec: NodeSpec) -> int:
     """Run a node (Python implementation) until it is told to stop; its exit status.
 
     The bus configuration comes from ``RRA_BUS_CONFIG``. Used by ``python -m rra_agent.node``
-    and by the host agent's fork server.
+    and by the host agent's fork server. An exception that ends the node (in its import, its
+    constructor, ``import_state``, ``on_start``, or a ``sys.exit`` with a non-zero status) is
+    printed to its log with its traceback and reported to its host agent
+    (`rra_agent.failure`): exit status 2 when the spec or implementation is unusable, 1
+    for any other exception.
     """
+    try:
+        return _run_node(spec)
+    except SystemExit as e:
+        if e.code not in (None, 0):
+            _crashed(spec, e, "run")
+        raise
+    except Exception as e:
+        _crashed(spec, e, "run")
+        return EXIT_FAILED
+
+
+def _run_node(spec: NodeSpec) -> int:
     from rra_agent.bus.config import BusConfig
 
     if spec.implementation == CONTAINER:
@@ -698,12 +779,26 @@ def run_node(spec: NodeSpec) -> int:
         bus = BusConfig.from_env()
         trace.mark("node:imported", spec.name)
     except (ValueError, RraError) as e:
-        print(f"rra node {spec.name}: {e}", file=sys.stderr)
+        _crashed(spec, e, "import")
         return EXIT_CONFIG
 
     from rra_agent.bus.runtime import NodeRuntime
 
-    return NodeRuntime(spec, node_cls, bus).run()
+    runtime = NodeRuntime(spec, node_cls, bus)
+    try:
+        return runtime.run()
+    finally:
+        core = runtime.core
+        if core is not None and core.stop_failure is not None:  # a later report replaces it
+            failure.write_report(core.stop_failure)
+
+
+def _crashed(spec: NodeSpec, e: BaseException, during: str) -> None:
+    """The node ends by ``e``: its summary and traceback to the log, the report written."""
+    f = failure.describe(e, during, spec.path)
+    print(f"rra node {spec.name}: {failure.summary(f)}", file=sys.stderr, flush=True)
+    print(failure.formatted(e), file=sys.stderr, flush=True)
+    failure.write_report(f)
 
 
 def main(argv: list[str] | None = None) -> int:

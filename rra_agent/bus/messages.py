@@ -146,6 +146,29 @@ class AdaptationEvent(Msg, tag="event"):
     context: dict[str, float | int | bool | str] = {}
 
 
+class Failure(
+    msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True, frozen=True
+):
+    """Why a node failed: the exception its code raised (`rra_agent.failure.describe`), as
+    the node reported it to its host agent, or, for an external command, which reports
+    nothing, the end of its output (``type`` empty)."""
+
+    #: The exception's class (``RuntimeError``; ``pkg.module.Class`` outside builtins).
+    type: str = ""
+    #: Its message (an external command: its last lines of output).
+    message: str = ""
+    #: ``file:line`` of the innermost frame of the node's own code (relative to the package).
+    where: str = ""
+    #: The function of that frame.
+    function: str = ""
+    #: What the runtime was running: ``import``, ``constructor``, ``on_start``, ``step``...
+    during: str = ""
+    #: When (wall clock).
+    stamp: float = 0.0
+    #: The log (on the node's host) that holds the whole traceback.
+    log: str = ""
+
+
 class NodeState(Msg, tag="node_state"):
     stamp: float
     node: str
@@ -159,6 +182,9 @@ class NodeState(Msg, tag="node_state"):
     reason: str = ""
     #: `spec_digest` of the spec the host agent (re)starts the node with.
     digest: str = ""
+    #: The exception (or external command's output) that caused this transition; in
+    #: ``ListNodes``, the node's last failure (``reason``: that failure's reason).
+    failure: Failure | None = None
 
 
 EventMessage = AdaptationEvent | NodeState
@@ -270,6 +296,8 @@ class ProcessStats(Msg, tag="process_stats"):
     rejected: int = 0
     #: Further counters by name (e.g. ``coalesced``, ``published``, ``restarts``).
     counters: dict[str, int] = {}
+    #: A node's newest exception in a callback it went on after (``counters["errors"]``).
+    failure: Failure | None = None
 
 
 class Ok(Msg, tag="ok"):
@@ -279,6 +307,8 @@ class Ok(Msg, tag="ok"):
 class Err(Msg, tag="err"):
     message: str
     code: str = "error"
+    #: The exception of node code behind it (a hook raised, a component did not load).
+    failure: Failure | None = None
 
 
 Reply = Ok | Err

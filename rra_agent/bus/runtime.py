@@ -253,6 +253,8 @@ class NodeRuntime:
         self._wsock.setblocking(False)
         self._signalled = False
         self.heartbeat = Heartbeat.from_env()
+        #: The node's core once made (`rra_agent.node.run_node` reads its failures).
+        self.core: NodeCore | None = None
 
     def wake(self) -> None:
         with contextlib.suppress(BlockingIOError, OSError):  # a wake-up is already pending
@@ -278,6 +280,7 @@ class NodeRuntime:
                 logger=lambda s: print(s, file=sys.stderr, flush=True),
                 pid=os.getpid(),
             )
+            self.core = core
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = session.declare_queryable(

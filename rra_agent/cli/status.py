@@ -21,6 +21,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from rra_agent import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, connect_system, wait_until
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
@@ -197,6 +198,7 @@ def render(status: dict[str, Any], *, wide: bool = False) -> str:
         _system_section(status.get("engine"), wide),
         _hosts_section(status, wide),
         _nodes_section(status, wide),
+        _failures_section(status, wide),
     ]
     return "\n\n".join("\n".join(lines) for lines in sections if lines)
 
@@ -305,6 +307,44 @@ def _nodes_section(status: dict[str, Any], wide: bool) -> list[str]:
             row = {"node": name, "host": d["host"], "state": "UNKNOWN", "restarts": 0}
             lines.append(_row(row, d, {}, wide))
     return lines
+
+
+def _failures_section(status: dict[str, Any], wide: bool) -> list[str]:
+    """One line per node that failed: its last failure (an exit, a freeze, a component that
+    did not load, with what it raised), or the newest exception in a callback it went on
+    after, whichever came last."""
+    stats = {k.split(":", 1)[1]: v for k, v in status.get("stats", {}).items()
+             if k.startswith("node:")}  # fmt: skip
+    lines = []
+    for n in sorted(status["nodes"], key=lambda n: (n.get("host") or "", n["node"])):
+        last = _last_failure(n, stats.get(n["node"], {}))
+        if last is not None:
+            at, text = last
+            when = time.strftime("%H:%M:%S", time.localtime(at)) if at else "-"
+            lines.append(_cut(f"{_cut(n['node'], 24, wide):<24} {when:<8} {text}", WIDTH, wide))
+    return [f"{'NODE':<24} {'WHEN':<8} LAST FAILURE", *lines] if lines else []
+
+
+def _last_failure(n: dict[str, Any], st: dict[str, Any]) -> tuple[float, str] | None:
+    """(when, what) of a node's last failure: its host agent's record (``ListNodes``) or its
+    own newest callback exception (``Stats``); None if it never failed."""
+    found = []
+    if n.get("reason") or n.get("failure"):
+        f = _failure(n.get("failure"))
+        text = failure.summary(f) if f else n["reason"]
+        found.append((f.stamp if f else 0.0, text))
+    f = _failure(st.get("failure"))
+    if f is not None:
+        errors = (st.get("counters") or {}).get("errors", 1)
+        found.append((f.stamp, f"runs on after {errors} errors: {failure.summary(f)}"))
+    return max(found, key=lambda x: x[0]) if found else None
+
+
+def _failure(raw: Any) -> m.Failure | None:
+    try:
+        return msgspec.convert(raw, m.Failure) if raw else None
+    except msgspec.ValidationError:
+        return None
 
 
 def _cut(text: str, width: int, wide: bool) -> str:
@@ -429,8 +469,12 @@ def format_event(ev: m.AdaptationEvent | m.NodeState, *, wide: bool = True) -> s
     t = time.strftime("%H:%M:%S", time.localtime(ev.stamp)) + f".{int(ev.stamp % 1 * 1000):03d}"
     match ev:
         case m.NodeState():
-            why = f" ({ev.reason})" if ev.reason else ""
-            lines = [(f"{t} node  {ev.host}/{ev.node}: {ev.previous} -> {ev.state}{why}", "")]
+            reason = failure.without_summary(ev.reason, ev.failure)
+            why = f" ({reason})" if reason else ""
+            head = f"{t} node  {ev.host}/{ev.node}: {ev.previous} -> {ev.state}{why}"
+            lines = [(head, " " * 19)]
+            if ev.failure is not None:  # what the node raised, where, and its log
+                lines += [(f"    {x}", " " * 6) for x in failure.details(ev.failure)]
         case m.AdaptationEvent():
             cause = "; ".join(f"{c.rule}: {c.action}" for c in ev.cause)
             dur = " ".join(f"{k}={v * 1e3:.1f}ms" for k, v in ev.durations.items())

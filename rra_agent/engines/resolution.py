@@ -1204,7 +1204,8 @@ def _rerun_config() -> dict[str, Any]:
 
 
 def _observed(st: m.NodeState) -> dict[str, Any]:
-    """A node as its host agent last reported it (``rra status`` shows it)."""
+    """A node as its host agent last reported it (``rra status`` shows it, with what it
+    raised if that report was a failure)."""
     return {
         "state": st.state,
         "pid": st.pid,
@@ -1212,6 +1213,7 @@ def _observed(st: m.NodeState) -> dict[str, Any]:
         "restarts": st.restarts,
         "active": st.active,
         "implementation": st.implementation,
+        **({"reason": st.reason, "failure": msgspec.to_builtins(st.failure)} if st.failure else {}),
     }
 
 

@@ -175,12 +175,22 @@ class HostAgent:
             restarts=t.restarts,
             reason=t.reason,
             digest=m.spec_digest(p.spec) if p else "",
+            failure=self._with_log(t.node, t.failure),
         )
         self._put(msg)
         for observe in self.observers:
             observe(msg)
         if t.state == State.RUNNING and t.node in self.supervisor.procs and t.pid:
             self._check_scheduling(self.supervisor.procs[t.node].spec, t.pid)
+
+    def _with_log(self, name: str, failure: m.Failure | None) -> m.Failure | None:
+        """``failure`` with the log that holds its traceback: a component's is its
+        container's (a node's own report names its log already)."""
+        if failure is None or failure.log:
+            return failure
+        container = self.catalog.container_of(name)
+        log = self.local.log_path(container or name).resolve()
+        return msgspec.structs.replace(failure, log=str(log))
 
     def _check_scheduling(self, spec: m.NodeSpec, pid: int) -> None:
         """A node asked for a scheduling the kernel did not grant: say so (it runs anyway)."""
@@ -525,6 +535,8 @@ class HostAgent:
                 active=p.spec.active,
                 restarts=p.restarts,
                 digest=m.spec_digest(p.spec),
+                reason=p.last_failure,
+                failure=self._with_log(name, p.failure),
             )
             for name, p in records
         ]
@@ -554,7 +566,7 @@ class HostAgent:
         """Feed the supervisor every exit the OS reported (runs on each wake-up)."""
         now = self.clock()
         for pid, status in self.local.reap():
-            self.supervisor.on_exit(pid, status, now)
+            self.supervisor.on_exit(pid, status, now, self.local.failures.pop(pid, None))
         while self.local.zygote_exits:
             status = self.local.zygote_exits.pop(0)
             self.event(

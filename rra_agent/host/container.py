@@ -7,9 +7,11 @@ stopped like a node) and loads and unloads its components one by one with `LoadN
 node process has: its own ports (its own publishers and subscribers on the container's one
 Zenoh session), parameters, control endpoint (``rra/<system>/node/<component>/ctl``),
 liveliness token (its readiness) and state export; starts, stops, swaps and rewires are per
-component. A component's callback that raises is counted and logged by its `NodeCore`; its
-neighbours go on. One process for many components saves the interpreter, the session and the
-scheduling of a process per component (the memory and the switch of a hundred components).
+component. A component's callback that raises (even ``sys.exit``) is counted and logged with
+its traceback by its `NodeCore`; one that raises while it is loaded does not start and is
+answered with its `Failure`; either way its neighbours go on. One process for many
+components saves the interpreter, the session and the scheduling of a process per component
+(the memory and the switch of a hundred components).
 
 What a container loads is what its host agent's model declares: the container's own spec
 (from the host agent, never from the bus) lists its members' implementations and parameter
@@ -35,6 +37,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from rra_agent import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Counters, too_large
@@ -224,25 +227,39 @@ class ContainerRuntime:
             return m.Ok(result={"already": True, "pid": os.getpid()})
         assert self.session is not None
         transport = ZenohTransport(self.session)
+        queryable = None
         try:
             node_cls = load_node_class(spec.implementation, spec.path)  # type: ignore[arg-type]
-            core = NodeCore(spec, node_cls, transport, logger=self._logger(spec.name),
-                            pid=os.getpid())  # fmt: skip
+            # _stderr: the core prefixes its lines with the component's name itself.
+            core = NodeCore(
+                spec, node_cls, transport, logger=_stderr, pid=os.getpid(), contained=True
+            )
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = self.session.declare_queryable(
                 self.keys.node_ctl(spec.name), control_callback(core, self._wake)
             )
             core.start()
-        except Exception as e:  # the component does not start; its neighbours go on
+        except (Exception, SystemExit) as e:  # it does not start; its neighbours go on
+            if queryable is not None:
+                queryable.undeclare()
             transport.close()
-            return m.Err(message=f"{spec.name}: {type(e).__name__}: {e}", code="node_error")
+            return self._load_failed(spec, e)
         transport.core = core
         token = self.session.liveliness().declare_token(self.keys.alive(spec.host, spec.name))
         rate = core.rate_hz
         first = time.time() + (1.0 / rate if rate > 0 else 0.0)
         self.loaded[spec.name] = _Loaded(core, transport, queryable, token, first)
         return m.Ok(result={"pid": os.getpid()})
+
+    def _load_failed(self, spec: m.NodeSpec, e: BaseException) -> m.Err:
+        """A component that raised while loading (import, constructor, ``on_start``, even
+        ``sys.exit``): its traceback in the container's log, its `Failure` in the reply."""
+        f = failure.describe(e, "load", spec.path)
+        prefix = f"[{spec.name}] "
+        text = f"did not start: {failure.summary(f)}\n{failure.formatted(e)}"
+        _stderr(prefix + text.replace("\n", "\n" + prefix))
+        return m.Err(message=f"{spec.name}: {failure.summary(f)}", code="node_error", failure=f)
 
     def _unload(self, name: str) -> None:
         entry = self.loaded.pop(name)
@@ -251,13 +268,6 @@ class ContainerRuntime:
         entry.token.undeclare()
         entry.queryable.undeclare()
         entry.transport.close()
-
-    @staticmethod
-    def _logger(name: str):
-        def log(text: str) -> None:
-            print(f"[{name}] {text}", file=sys.stderr, flush=True)
-
-        return log
 
     # ---- main loop -----------------------------------------------------------------------
     def _loop(self) -> None:
@@ -310,6 +320,11 @@ class ContainerRuntime:
         finally:
             for lock in taken:
                 lock.release()
+
+
+def _stderr(text: str) -> None:
+    """A line of the container's log (its stderr)."""
+    print(text, file=sys.stderr, flush=True)
 
 
 def run_container(spec: m.NodeSpec, bus: BusConfig) -> int:

@@ -79,7 +79,8 @@ _PR_SET_PDEATHSIG = 1
 _PR_SET_CHILD_SUBREAPER = 36
 #: How long a node waits to be adopted by the host agent before it gives up.
 _ADOPTION_TIMEOUT = 5.0
-#: Exit status of a node that could not be set up (never ran its code).
+#: Exit status of a node process that could not be set up (never ran its code; an exception
+#: of the node's own code is status 1 with a report, `rra_agent.node.run_node`).
 EXIT_SETUP = 71
 #: Spare node processes kept forked, adopted and waiting for a request: a start then costs
 #: neither a fork nor the wait for the adoption (measured ~7 ms of a 20 ms cold start).
@@ -431,9 +432,12 @@ def _node(request: dict[str, Any]) -> None:
             from rra_agent.node import run_node
 
             code = run_node(spec)
-    except BaseException as e:  # the node must never fall back into the zygote's loop
+    except SystemExit as e:  # sys.exit in the node's code: its status, as Python's own
+        code = _status(e.code)
+    except BaseException:  # the node must never fall back into the zygote's loop
         with contextlib.suppress(Exception):
-            print(f"rra node (forked): {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+            print("rra node (forked): could not be set up:", file=sys.stderr, flush=True)
+            traceback.print_exc()
     finally:
         with contextlib.suppress(Exception):
             sys.stdout.flush()

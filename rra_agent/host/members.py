@@ -22,6 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from rra_agent.bus import messages as m
+from rra_agent.failure import reason as with_failure
 from rra_agent.host.supervisor import State, Transition
 
 
@@ -35,6 +36,9 @@ class Member:
     restarts: int = 0
     #: A load or unload is in flight (its reply has not come yet).
     busy: bool = False
+    #: The reason of its last failure ("" if none yet), and what raised it if known.
+    last_failure: str = ""
+    failure: m.Failure | None = None
 
 
 #: ``send(container, request, on_reply)``: the host agent delivers ``request`` to the
@@ -52,8 +56,12 @@ class Members:
         self.containers: dict[str, int | None] = {}
 
     # ---- the one place a state changes ---------------------------------------------------
-    def _set(self, mb: Member, state: State, now: float, reason: str) -> None:
+    def _set(
+        self, mb: Member, state: State, now: float, reason: str, failure: m.Failure | None = None
+    ) -> None:
         previous, mb.state = mb.state, state
+        if state in (State.BACKOFF, State.FATAL) or failure is not None:
+            mb.last_failure, mb.failure = reason, failure
         if previous != state:
             self.listener(
                 Transition(
@@ -65,6 +73,7 @@ class Members:
                     pid=mb.pid,
                     restarts=mb.restarts,
                     reason=reason,
+                    failure=failure,
                 )
             )
 
@@ -134,7 +143,8 @@ class Members:
             return  # stopped or respecified meanwhile: a later request decides
         if isinstance(reply, m.Err):
             mb.want_running = False
-            self._set(mb, State.FATAL, now, f"load refused: {reply.message}")
+            why = "load refused" + ("" if reply.failure else f": {reply.message}")
+            self._set(mb, State.FATAL, now, with_failure(why, reply.failure), reply.failure)
             return
         # Loaded means on_start ran and the token is declared: the component is ready.
         self._set(mb, State.RUNNING, now, "ready")

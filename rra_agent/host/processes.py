@@ -6,8 +6,10 @@ Either way the node becomes a direct child of this process (a child subreaper), 
 is *reaped here*: `reap` returns every exit since the last call, and the host agent calls it
 whenever SIGCHLD wakes its loop, so a death is known at once, never from a lease. Each node
 gets its spec in ``RRA_NODE_SPEC``, the bus configuration in ``RRA_BUS_CONFIG``, a heartbeat
-slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), and its output in
-``<log_dir>/<node>.log``.
+slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), its output in ``<log_dir>/<node>.log``
+and the file for its failure report in ``RRA_FAILURE_REPORT`` (``<log_dir>/<node>.failure``,
+`rra_agent.failure`), read when it is reaped (``failures``; for an external command that
+failed, the last lines of its output instead).
 
 A command among ``forked`` (the host agent's own ``python -m MODULE ...`` processes: ``rra
 up``'s engines) is run in the forked process, not ``exec``ed
@@ -36,10 +38,11 @@ from pathlib import Path
 
 import msgspec
 
+from rra_agent import failure
 from rra_agent.bus.config import ENV_VAR as BUS_ENV
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import check_chunk
-from rra_agent.bus.messages import NodeSpec
+from rra_agent.bus.messages import Failure, NodeSpec
 from rra_agent.host import heartbeat as hb
 from rra_agent.host import scheduling
 from rra_agent.host.forkserver import (
@@ -53,6 +56,9 @@ from rra_agent.node import SPEC_ENV
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
 Prober = Callable[[str, int, float], None]
+#: Ends of a process that say nothing about its code (stopped, or killed, by someone):
+#: no output is read for them.
+_QUIET_SIGNALS = frozenset({-signal.SIGKILL, -signal.SIGTERM, -signal.SIGINT})
 
 
 def _preexec(spec: NodeSpec) -> Callable[[], None]:
@@ -119,6 +125,11 @@ class LocalHost:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         #: Live node processes: pid -> node name.
         self.names: dict[int, str] = {}
+        #: Why each process reaped since the host agent last looked failed, by pid: its
+        #: report, or for an external command the end of its output (`failure`).
+        self.failures: dict[int, Failure] = {}
+        #: Live external commands: pid -> where their output began in their log.
+        self._commands: dict[int, int] = {}
         self._popen: dict[int, subprocess.Popen[bytes]] = {}
         if fork_server is None:
             fork_server = os.environ.get("RRA_FORK_SERVER", "1") != "0"
@@ -142,9 +153,12 @@ class LocalHost:
     # ---- ProcessHost -------------------------------------------------------------------
     def spawn(self, spec: NodeSpec) -> int:
         check_chunk(spec.name, "node name")  # also a file name: no '/', no '..'
-        log_path = self.log_dir / f"{spec.name}.log"
+        log_path = self.log_path(spec.name)
+        with contextlib.suppress(OSError):  # a report left by an earlier run is not this one's
+            os.unlink(self.report_path(spec.name))
         env = self._env(spec)
         external = not isinstance(spec.implementation, str)
+        offset = log_path.stat().st_size if log_path.exists() else 0
         if self._fork_server_wanted:
             argv = node_command(spec) if external else None
             cwd = spec.implementation.cwd if external else None  # type: ignore[union-attr]
@@ -153,7 +167,17 @@ class LocalHost:
         else:
             pid = self._exec(spec, env, log_path)
         self.names[pid] = spec.name
+        if external:
+            self._commands[pid] = offset
         return pid
+
+    def log_path(self, name: str) -> Path:
+        """Where a node's output goes (its traceback, if it fails)."""
+        return self.log_dir / f"{name}.log"
+
+    def report_path(self, name: str) -> Path:
+        """Where a node leaves its failure report (``RRA_FAILURE_REPORT``)."""
+        return self.log_dir / f"{name}.failure"
 
     def signal(self, pid: int, sig: int) -> None:
         if pid in self.names:
@@ -197,8 +221,24 @@ class LocalHost:
         proc = self._popen.pop(pid, None)
         if proc is not None:
             proc.returncode = status
+        start = self._commands.pop(pid, None)
         if name is not None:
+            found = self._failure(name, status, start)
+            if found is not None:
+                self.failures[pid] = found
             out.append((pid, status))
+
+    def _failure(self, name: str, status: int, output_start: int | None) -> Failure | None:
+        """The report a node left, or for an external command that failed (not stopped or
+        killed by someone) the last lines of its output; with the log that holds it all."""
+        log = str(self.log_path(name).resolve())
+        report = failure.take_report(self.report_path(name))
+        if report is not None:
+            return msgspec.structs.replace(report, log=report.log or log)
+        if output_start is None or status == 0 or status in _QUIET_SIGNALS:
+            return None
+        text = failure.tail(log, output_start)
+        return Failure(message=text, stamp=time.time(), log=log) if text else None
 
     def beats(self) -> dict[str, hb.Beat]:
         return self.heartbeats.read_all()
@@ -247,6 +287,7 @@ class LocalHost:
             SPEC_ENV: msgspec.json.encode(spec).decode(),
             BUS_ENV: self.bus_for(spec).to_env(),
             hb.ENV: self.heartbeats.allocate(spec.name),
+            failure.REPORT_ENV: str(self.report_path(spec.name).resolve()),
             "PYTHONUNBUFFERED": "1",
             **self.extra_env,
         }

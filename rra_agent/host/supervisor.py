@@ -39,7 +39,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Protocol, cast
 
-from rra_agent.bus.messages import NodeSpec, NodeStateName
+from rra_agent.bus.messages import Failure, NodeSpec, NodeStateName
+from rra_agent.failure import reason as with_failure
 from rra_agent.host.heartbeat import Beat
 from rra_agent.models.system import Supervision
 
@@ -103,6 +104,8 @@ class Transition:
     pid: int | None
     restarts: int
     reason: str
+    #: The exception (or an external command's output) behind this transition.
+    failure: Failure | None = None
 
 
 @dataclass
@@ -130,6 +133,9 @@ class Proc:
     last_beat: float | None = None
     #: Already given a second chance after a common-mode loss (reset by a fresh beat).
     rechecked: bool = False
+    #: The reason of its last failure ("" if none yet), and what raised it if known.
+    last_failure: str = ""
+    failure: Failure | None = None
 
     @property
     def policy(self) -> Supervision:
@@ -161,10 +167,15 @@ class Supervisor:
         self._last_tick: float | None = None
 
     # ---- the one place a state changes ---------------------------------------------------
-    def _set(self, p: Proc, state: State, now: float, reason: str) -> None:
+    def _set(
+        self, p: Proc, state: State, now: float, reason: str, failure: Failure | None = None
+    ) -> None:
         previous = p.state
         p.state = state
         p.since = now
+        exited = state == State.EXITED and reason != "exited normally"
+        if failure is not None or exited or state in (State.BACKOFF, State.FATAL):
+            p.last_failure, p.failure = reason, failure
         if self.listener is not None and previous != state:
             self.listener(
                 Transition(
@@ -176,6 +187,7 @@ class Supervisor:
                     pid=p.pid,
                     restarts=p.restarts,
                     reason=reason,
+                    failure=failure,
                 )
             )
 
@@ -228,11 +240,12 @@ class Supervisor:
         self.procs[name].spec = spec
 
     # ---- observations ------------------------------------------------------------------
-    def on_exit(self, pid: int, status: int, now: float) -> None:
-        """The OS reported that process ``pid`` ended (negative status: killed by -status)."""
+    def on_exit(self, pid: int, status: int, now: float, failure: Failure | None = None) -> None:
+        """The OS reported that process ``pid`` ended (negative status: killed by -status);
+        ``failure``: what the process reported raising (or an external command's output)."""
         p = self._by_pid(pid)
         if p is not None:
-            self._on_exit(p, status, now)
+            self._on_exit(p, status, now, failure)
 
     def on_ready(self, name: str, now: float) -> None:
         """The node said it is ready (its liveliness token, or the ready flag of its
@@ -405,30 +418,32 @@ class Supervisor:
         self._kill(p)
         self._failed(p, now, f"frozen ({age}{why}): killed")
 
-    def _on_exit(self, p: Proc, status: int, now: float) -> None:
+    def _on_exit(self, p: Proc, status: int, now: float, failure: Failure | None) -> None:
         p.exit_status = status
         if p.state == State.STOPPING:
             p.deadline = None
-            self._set(p, State.STOPPED, now, f"stopped (exit status {status})")
+            why = with_failure(f"stopped (exit status {status})", failure)
+            self._set(p, State.STOPPED, now, why, failure)
             p.pid = None  # after the transition, which names the process that stopped
             return
         if p.state not in LIVE:
             p.pid = None  # the one killed before its restart: already accounted for
             return
         if status == EXIT_CONFIG:
-            self._fatal(p, now, "unusable node spec or implementation (exit 2; see its log)")
+            why = "unusable node spec or implementation (exit 2; see its log)"
+            self._fatal(p, now, why, failure)
             return
         if status == 0 and p.policy.restart != "always":
             p.deadline = None
-            self._set(p, State.EXITED, now, "exited normally")
+            self._set(p, State.EXITED, now, with_failure("exited normally", failure), failure)
             return
-        self._failed(p, now, f"exited with status {status}")
+        self._failed(p, now, f"exited with status {status}", failure)
 
-    def _failed(self, p: Proc, now: float, reason: str) -> None:
+    def _failed(self, p: Proc, now: float, reason: str, failure: Failure | None = None) -> None:
         pol = p.policy
         if pol.restart == "never" or not p.want_running:
             p.deadline = None
-            self._set(p, State.EXITED, now, reason)
+            self._set(p, State.EXITED, now, with_failure(reason, failure), failure)
             return
         p.failures = [t for t in p.failures if now - t < pol.restart_window]
         if len(p.failures) >= pol.max_restarts:
@@ -436,18 +451,20 @@ class Supervisor:
                 p,
                 now,
                 f"{reason}; {len(p.failures)} restarts within {pol.restart_window:g} s",
+                failure,
             )
             return
         p.failures.append(now)
         p.restarts += 1
         backoff = min(pol.backoff_max, pol.backoff_initial * 2 ** (len(p.failures) - 1))
         p.deadline = now + backoff
-        self._set(p, State.BACKOFF, now, reason)
+        self._set(p, State.BACKOFF, now, with_failure(reason, failure), failure)
 
-    def _fatal(self, p: Proc, now: float, reason: str) -> None:
+    def _fatal(self, p: Proc, now: float, reason: str, failure: Failure | None = None) -> None:
         cooldown = p.policy.cooldown
         p.deadline = now + cooldown
-        self._set(p, State.FATAL, now, f"{reason}; retrying in {cooldown:g} s")
+        why = with_failure(f"{reason}; retrying in {cooldown:g} s", failure)
+        self._set(p, State.FATAL, now, why, failure)
 
     # ---- queries -----------------------------------------------------------------------
     def next_deadline(self) -> float | None:

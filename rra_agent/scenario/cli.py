@@ -5,7 +5,10 @@ Each argument is a scenario file or a folder (a system package, or any folder: e
 the end has one row per expectation: scenario, expectation, outcome, observed value and time.
 A failed case keeps its run folder (events log, the ``.rrd`` recording when there is one, the
 bus recording, every process's log) and its paths are printed; a passed one is removed unless
-``--keep``. Exit status 1 when a scenario does not load or any expectation fails.
+``--keep``. A node that crashed (an exception of its code, a failing external command) is
+named after the table with what it raised, where, and its log, which is kept
+(``crashed/<node>.log`` of the run folder, with ``results.txt``) even when its case passed.
+Exit status 1 when a scenario does not load or any expectation fails.
 """
 
 from __future__ import annotations
@@ -64,7 +67,13 @@ def slug(text: str) -> str:
 def run(args: argparse.Namespace) -> int:
     from rra_agent.models.loader import flatten_errors
     from rra_agent.scenario.model import ScenarioCase, load_scenario
-    from rra_agent.scenario.runner import describe_failure, render_rows, run_case
+    from rra_agent.scenario.runner import (
+        describe_failure,
+        prune,
+        render_crashes,
+        render_rows,
+        run_case,
+    )
 
     status = 0
     cases: list[ScenarioCase] = []
@@ -95,13 +104,16 @@ def run(args: argparse.Namespace) -> int:
         )
         runs.append(result)
         if result.passed and not args.keep:
-            shutil.rmtree(result.run_dir, ignore_errors=True)
+            prune(result)  # all but its crashed nodes' logs and its verdict
     print(render_rows(runs), flush=True)
     failed = [r for r in runs if not r.passed]
+    crashed = render_crashes([r for r in runs if r.passed])
+    if crashed:
+        print(f"\n{crashed}", flush=True)
     for r in failed:
         print()
         print(describe_failure(r))
-    if not args.out and not failed and not args.keep:
+    if not args.out and not failed and not crashed and not args.keep:
         shutil.rmtree(base, ignore_errors=True)
     print(
         f"\n{len(runs) - len(failed)} passed, {len(failed)} failed "

@@ -12,7 +12,9 @@ An item runs its system with `rra_agent.scenario.runner.run_case` in a run folde
 ``rra_scenario_runs`` (ini; default: the system temp dir); the folder is removed when the
 scenario passes (unless ``--rra-keep-runs``) and kept when it fails. A failure shows each
 failing expectation as ``scenario-file:line: expectation failed: TEXT`` with what was
-observed, and the paths of the events log and recordings.
+observed, and the paths of the events log and recordings. A node that crashed is named in
+the report with what it raised, and its log is kept (``crashed/<node>.log``, also when the
+scenario passes).
 
 Patterns: one without ``/`` matches the file name; one with ``/`` matches the path relative
 to the rootdir, where ``**/`` stands for any number of folders (``scenarios/**/*.scenario.yaml``).
@@ -23,7 +25,6 @@ from __future__ import annotations
 import fnmatch
 import os
 import re
-import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -131,15 +132,16 @@ class ScenarioItem(pytest.Item):
         return Path(tempfile.mkdtemp(prefix=f"{name}-", dir=root))
 
     def runtest(self) -> None:
-        from rra_agent.scenario.runner import render_rows, run_case
+        from rra_agent.scenario.runner import prune, render_crashes, render_rows, run_case
 
         run = run_case(self.case, self._run_dir())
         self.user_properties.append(("rra_run_dir", str(run.run_dir)))
-        self.add_report_section("call", "rra scenario", render_rows([run]))
+        verdict = "\n\n".join(t for t in (render_rows([run]), render_crashes([run])) if t)
+        self.add_report_section("call", "rra scenario", verdict)
         if not run.passed:
             raise ScenarioFailed(run)
         if not self.config.getoption("rra_keep_runs"):
-            shutil.rmtree(run.run_dir, ignore_errors=True)
+            prune(run)  # all but its crashed nodes' logs and its verdict
 
     def repr_failure(self, excinfo: pytest.ExceptionInfo[BaseException]) -> Any:  # type: ignore[override]
         if isinstance(excinfo.value, ScenarioFailed):

@@ -19,7 +19,10 @@ environment; each is started in a session of its own, with a parent-death signal
 Evaluation is separate and pure: `evaluate_case` takes the case and the `Recording` and
 returns one `Row` per expectation (plus one per timeline step that could not be applied).
 The recording is saved as ``recording.msgpack`` next to the system's ``events.jsonl`` and
-logs; `run_case` returns it with the rows in a `CaseRun`.
+logs; `run_case` returns it with the rows in a `CaseRun`. A node that failed with a report
+(an exception of its code, an external command's last output: `NodeState.failure`) is a
+*crash*: its log is copied to ``crashed/<node>.log`` of the run folder, kept even when the
+case passes (`prune`), and the verdict names what it raised and where (`render_crashes`).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import msgspec
 import yaml
 import zenoh
 
+from rra_agent import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.config import BusConfig, free_port
@@ -80,6 +84,17 @@ class Row:
     expectation: x.Expectation | None = None
 
 
+@dataclass(frozen=True)
+class Crash:
+    """A node that failed during the run, with what it raised, and its log as kept."""
+
+    node: str
+    host: str
+    state: str
+    failure: m.Failure
+    log: Path | None
+
+
 @dataclass
 class CaseRun:
     case: ScenarioCase
@@ -88,6 +103,7 @@ class CaseRun:
     error: str | None = None
     seconds: float = 0.0
     recording: x.Recording | None = None
+    crashes: list[Crash] = field(default_factory=list)
 
     @property
     def passed(self) -> bool:
@@ -106,7 +122,59 @@ class CaseRun:
         out = [self.events_log, *sorted(self.run_dir.rglob("*.rrd"))]
         out += [self.run_dir / "recording.msgpack", self.run_dir / "up.log"]
         out += sorted(self.run_dir.glob("hosts/*/agent.log"))
+        out += [c.log for c in self.crashes if c.log is not None]
         return [p for p in out if p.exists()]
+
+
+CRASHED = "crashed"
+RESULTS = "results.txt"
+
+
+def crashed_states(events: list[m.EventMessage]) -> list[m.NodeState]:
+    """The last failure (a `NodeState` with a ``failure``) of each node, in the order the
+    nodes first failed."""
+    last: dict[str, m.NodeState] = {}
+    for ev in sorted(events, key=lambda e: e.stamp):
+        if isinstance(ev, m.NodeState) and ev.failure is not None:
+            last[ev.node] = ev
+    return list(last.values())
+
+
+def keep_crash_logs(
+    run_dir: Path, states: list[m.NodeState], hosts: tuple[str, ...]
+) -> list[Crash]:
+    """Copy each crashed node's log (the one its failure names, else its host's copy in the
+    run folder) to ``crashed/<node>.log``."""
+    out = []
+    for st in states:
+        assert st.failure is not None
+        kept = None
+        candidates = [Path(st.failure.log)] if st.failure.log else []
+        candidates += [run_dir / "logs" / f"{st.node}.log"]
+        candidates += [host_dir(run_dir, h) / "logs" / f"{st.node}.log" for h in hosts]
+        src = next((c for c in candidates if c.is_file()), None)
+        if src is not None:
+            kept = run_dir / CRASHED / f"{st.node}.log"
+            kept.parent.mkdir(exist_ok=True)
+            with contextlib.suppress(OSError):
+                shutil.copyfile(src, kept)
+        out.append(Crash(st.node, st.host, st.state, st.failure, kept))
+    return out
+
+
+def prune(run: CaseRun) -> None:
+    """Remove a passed case's run folder, but for its crashed nodes' logs and its verdict."""
+    if not run.crashes:
+        shutil.rmtree(run.run_dir, ignore_errors=True)
+        return
+    for entry in run.run_dir.iterdir():
+        if entry.name in (CRASHED, RESULTS):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                entry.unlink()
 
 
 def evaluate_case(case: ScenarioCase, rec: x.Recording) -> list[Row]:
@@ -687,8 +755,13 @@ def run_case(case: ScenarioCase, run_dir: Path, *, startup_timeout: float = 60.0
     if rec is not None:
         (run_dir / "recording.msgpack").write_bytes(x.save_recording(rec))
         result.rows = evaluate_case(case, rec)
+    run.rec.merge_log(run_dir / "events.jsonl")  # a run that never deployed has events too
+    with run.rec.lock:
+        states = crashed_states(list(run.rec.events))
+    result.crashes = keep_crash_logs(run_dir, states, case.hosts)
     result.seconds = time.monotonic() - started
-    (run_dir / "results.txt").write_text(render_rows([result]) + "\n", encoding="utf-8")
+    verdict = "\n\n".join(t for t in (render_rows([result]), render_crashes([result])) if t)
+    (run_dir / RESULTS).write_text(verdict + "\n", encoding="utf-8")
     return result
 
 
@@ -711,14 +784,29 @@ def render_rows(runs: list[CaseRun], *, width: int = 60) -> str:
     )
 
 
+def render_crashes(runs: list[CaseRun]) -> str:
+    """One line per node that crashed in ``runs``: what it raised and where, then its kept
+    log (nothing when none did)."""
+    lines = []
+    for run in runs:
+        for c in run.crashes:
+            lines.append(f"{run.case.id}: node {c.node} crashed ({c.state}): "
+                         f"{failure.summary(c.failure)}")  # fmt: skip
+            lines.append(f"    log: {c.log}" if c.log else "    log: not found")
+    return "\n".join(lines)
+
+
 def describe_failure(run: CaseRun) -> str:
-    """What failed, where (scenario file:line) and what was observed; the kept artefacts."""
+    """What failed, where (scenario file:line) and what was observed; the nodes that
+    crashed, with what they raised; the kept artefacts."""
     lines = [f"scenario {run.case.id} ({run.case.file}) failed after {run.seconds:.1f} s:"]
     if run.error is not None:
         lines.append(f"  the run failed: {run.error}")
     for r in run.failures:
         lines.append(f"{r.where}: expectation failed: {r.text}")
         lines.append(f"    observed: {r.outcome.observed}")
+    for c in run.crashes:
+        lines.append(f"  node {c.node} crashed ({c.state}): {failure.summary(c.failure)}")
     for p in run.artifacts():
         lines.append(f"  kept: {p}")
     return "\n".join(lines)

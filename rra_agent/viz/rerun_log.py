@@ -495,16 +495,25 @@ class Logger:
 
     @_safe
     def node_state(self, st: NodeState) -> None:
-        """A node's state transition at ``/nodes/<node>/state`` and ``.../running``."""
+        """A node's state transition at ``/nodes/<node>/state`` and ``.../running``; one
+        that came with a failure (what the node raised, where, its log) also as an error
+        line of ``/events``."""
+        from rra_agent.failure import details, without_summary
+
         rr = self.rr
         text = st.state + (f" pid {st.pid}" if st.pid else "") + ("" if st.active else " standby")
-        if st.reason:
-            text += f" ({st.reason})"
+        reason = without_summary(st.reason, st.failure)
+        if reason:
+            text += f" ({reason})"
+        if st.failure is not None:
+            text += "".join(f"\n  {line}" for line in details(st.failure))
         running = 0.0 if st.state != "RUNNING" else 1.0 if st.active else 0.5
         base = f"/nodes/{self._part(st.node)}"
         self._at(None, st.stamp)
         self.rec.log(f"{base}/state", rr.TextLog(text, level=_STATE_LEVELS.get(st.state, "INFO")))
         self.rec.log(f"{base}/running", rr.Scalars(running))
+        if st.failure is not None:
+            self.rec.log("/events", rr.TextLog(f"node {st.node}: {text}", level="ERROR"))
 
     # ---- generic ------------------------------------------------------------------------
     @_safe

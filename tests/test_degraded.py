@@ -101,7 +101,7 @@ def test_status_shows_decided_and_in_effect_apart() -> None:
 class Agv:
     """``rra up tests/data/agv`` (or a copy) in real processes."""
 
-    def __init__(self, procs, bus, run_dir: Path, package: Path = AGV) -> None:
+    def __init__(self, procs, bus, run_dir: Path, package: Path = AGV, hostile: bool = False):
         self.run_dir = run_dir
         self.procs = procs
         self.proc = procs.python(
@@ -112,6 +112,9 @@ class Agv:
         wait_until(lambda: self.proc.poll() is not None or listening(port), 60, "rra up")
         self.client = BusClient(bus, "agv")
         self.bus = bus
+        if hostile:  # pytest --hostile: a hostile client on the bus, as for every system
+            procs.spawn([sys.executable, str(ROOT / "tools" / "hostile.py"), bus.connect[0],
+                         "agv"], name="hostile")  # fmt: skip
 
     def wait(self, pred, what: str, timeout: float = 30.0) -> dict:
         def check():
@@ -136,8 +139,10 @@ class Agv:
         )  # fmt: skip
 
 
-def test_an_operator_sees_the_degraded_state_forces_the_camera_and_retries(procs, bus, tmp_path):
-    agv = Agv(procs, bus, tmp_path / "run")
+def test_an_operator_sees_the_degraded_state_forces_the_camera_and_retries(
+    procs, bus, tmp_path, request
+):
+    agv = Agv(procs, bus, tmp_path / "run", hostile=request.config.getoption("--hostile"))
     try:
         agv.wait(lambda e: e["deployed"] and "Lidar" in e["effective"], "deployment")
         set_params(agv.client, "zone_sensor", {"zone": "human"})
@@ -186,7 +191,7 @@ def test_an_operator_sees_the_degraded_state_forces_the_camera_and_retries(procs
         agv.client.close()
 
 
-def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path):
+def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path, request):
     """Unavailable, then plugged in: the next probe (after the component's cooldown, 2 s)
     starts it, the engines re-admit it and, in the human zone, switch to it."""
     pkg = tmp_path / "agv"
@@ -195,7 +200,7 @@ def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path)
     edit_yaml(pkg / "system.yaml", lambda d: next(
         c for c in d["components"] if c["name"] == "depth_camera"
     )["parameters"]["device"].update(value=str(device)))  # fmt: skip
-    agv = Agv(procs, bus, tmp_path / "run", pkg)
+    agv = Agv(procs, bus, tmp_path / "run", pkg, request.config.getoption("--hostile"))
     try:
         agv.wait(lambda e: e["deployed"] and "Lidar" in e["effective"], "deployment")
         set_params(agv.client, "zone_sensor", {"zone": "human"})

@@ -1004,8 +1004,10 @@ class ResolutionEngine(EngineProcess):
         out: dict[str, dict[str, dict[str, Any]]] = {}
         for c in decided.components:
             spec = self.executor.running.get(c.name)
+            if spec is None:
+                continue  # not running: "degraded" says why
             want = {k: p.value for k, p in c.parameters.items()}
-            have = spec.params if spec is not None else {}
+            have = spec.params
             apart = {k for k, v in want.items() if k not in have or have[k] != v}
             if apart:
                 out[c.name] = {"decided": {k: want[k] for k in sorted(apart)},

@@ -46,7 +46,6 @@ def _enc_hook(obj: Any) -> Any:
 
 
 _DATA_ENC = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
-_MAX_DATA = MAX_PAYLOAD["data"]
 _DATA_DEC = msgspec.msgpack.Decoder()
 
 
@@ -245,8 +244,12 @@ class NodeCore:
         logger: Callable[[str], None] | None = None,
         pid: int = 0,
         monotonic: Callable[[], float] = time.monotonic,
+        max_data: int | None = None,
     ) -> None:
         self.spec = spec
+        #: The largest data sample accepted (the system's largest port limit; the routers
+        #: enforce each port's own first).
+        self.max_data = max_data or MAX_PAYLOAD["data"]
         self.transport = transport
         self.clock = clock
         #: For ages (of held samples): never set back, unlike the wall ``clock``.
@@ -320,8 +323,8 @@ class NodeCore:
         The per-sample hot path: decoding and the node call are inlined (no helper frames),
         and the lock is taken without ``with`` (half the cost).
         """
-        if len(payload) > _MAX_DATA:
-            self._drop(port, f"{len(payload)} bytes, more than the {_MAX_DATA} allowed")
+        if len(payload) > self.max_data:
+            self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return
         try:
             data = _DATA_DEC.decode(payload)
@@ -356,8 +359,8 @@ class NodeCore:
 
     def _valid(self, port: str, payload: bytes) -> bool:
         """Whether ``payload`` is a data sample `deliver` would accept (else dropped, counted)."""
-        if len(payload) > _MAX_DATA:
-            self._drop(port, f"{len(payload)} bytes, more than the {_MAX_DATA} allowed")
+        if len(payload) > self.max_data:
+            self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return False
         try:
             ok = isinstance(_DATA_DEC.decode(payload), dict)

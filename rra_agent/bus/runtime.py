@@ -277,6 +277,7 @@ class NodeRuntime:
                 transport,
                 logger=lambda s: print(s, file=sys.stderr, flush=True),
                 pid=os.getpid(),
+                max_data=self.bus.max_data_bytes,
             )
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))

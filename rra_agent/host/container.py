@@ -227,7 +227,7 @@ class ContainerRuntime:
         try:
             node_cls = load_node_class(spec.implementation, spec.path)  # type: ignore[arg-type]
             core = NodeCore(spec, node_cls, transport, logger=self._logger(spec.name),
-                            pid=os.getpid())  # fmt: skip
+                            pid=os.getpid(), max_data=self.bus.max_data_bytes)  # fmt: skip
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = self.session.declare_queryable(

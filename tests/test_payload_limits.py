@@ -99,7 +99,8 @@ def test_the_router_delivers_what_is_within_the_limit_and_nothing_over_it(
     sender, receiver = open_session(router), open_session(router)
     seen = Seen(receiver, key)
     try:
-        pub = sender.declare_publisher(key)
+        # BLOCK: the sender never drops a big sample itself; only the router may.
+        pub = sender.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
         wait_until(lambda: pub.matching_status.matching, 10, "the subscriber matched")
         pub.put(b"\x01" * size)
         pub.put(b"\x02")  # after it, on the same key: in order

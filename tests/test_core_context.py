@@ -7,7 +7,7 @@ import math
 import msgspec
 import pytest
 
-from rra_agent.core.context import ContextMonitor, coerce
+from rra_agent.core.context import ContextMonitor, coerce, measurement_problem
 from rra_agent.library.laser import closest_obstacle
 from rra_agent.models.measurements import MeasurementsModel
 
@@ -256,3 +256,27 @@ def test_refusals_reach_the_observer_once_per_sample():
     mon.refusals.observer = seen.append
     mon.on_raw("robot.battery", raw({**GOOD, "level": math.nan}), 0.0)
     assert [(r.source, r.reason) for r in seen] == [("robot.battery", "non_finite")]
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "reason"),
+    [
+        ("BattLev", 42, None),  # an int is a fine float
+        ("BattLev", math.nan, "non_finite"),
+        ("BattLev", -math.inf, "non_finite"),
+        ("BattLev", 100.5, "implausible"),
+        ("BattLev", "42", "wrong_type"),
+        ("BattLev", True, "wrong_type"),
+        ("Nope", 1.0, "unknown"),
+        ("Lenient", math.inf, None),
+        ("Lenient", -1.0, "implausible"),
+    ],
+)
+def test_a_measurement_from_the_bus_is_checked_against_its_declaration(name, value, reason):
+    declared = {
+        "BattLev": model(BATT).measurements[0],
+        "Lenient": model({"name": "Lenient", "type": "float", "source": "l.s", "finite": False,
+                          "plausible": {"min": 0}}).measurements[0],
+    }  # fmt: skip
+    problem = measurement_problem(declared.get(name), value)
+    assert (problem[0] if problem else None) == reason, problem

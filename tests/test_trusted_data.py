@@ -125,6 +125,41 @@ def test_ill_typed_non_finite_and_implausible_samples_are_refused_counted_and_ne
     assert "dropped (malformed): source.out: not msgpack" in logs
 
 
+_CTX = m.Codec[m.CtxMessage](m.CtxMessage)
+
+
+def test_forged_measurements_on_the_bus_are_refused_by_the_adaptation_engine(system):
+    """Measurements put straight on ``ctx/Level`` (not from the Context Monitor) that would
+    select Filtered: non-finite, implausible, of the wrong type, or of a name the model does
+    not declare. The Adaptation Engine replicas refuse each (logged once per kind)."""
+    sys_ = system()
+    selections = Selections(sys_.client.session)
+    forged = {
+        "non_finite": ("Level", math.inf),
+        "implausible": ("Level", 1e9),
+        "wrong_type": ("Level", "9"),
+        "unknown": ("Nope", 9.0),
+    }
+    logs = sys_.run_dir / "logs"
+
+    def refused_all() -> bool:
+        for name, value in forged.values():  # again on each look, until all are refused
+            msg = m.Measurement(name=name, value=value, stamp=1.0)
+            sys_.client.session.put(K.ctx(name), _CTX.encode(msg))
+        text = "".join(f.read_text() for f in logs.glob("adaptation-*.log"))
+        return all(f"refused ({reason}): measurement" in text for reason in forged)
+
+    try:
+        wait_until(refused_all, 30, "every forged measurement refused", interval=0.2)
+        sys_.set_level(7.0)  # the monitor's measurements are still believed
+        sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the real swap to Filtered")
+        wait_until(lambda: selections.named("Filtered"), 10, "the real selection seen")
+        first = selections.named("Filtered")[0]
+        assert first.cv["Gain"] == pytest.approx(7.0), first  # the operator's, not a forged one
+    finally:
+        selections.sub.undeclare()
+
+
 def oversized() -> dict[str, tuple[str, bytes]]:
     """Family -> (key, a payload 1 KiB over its limit); a control family's is a query's."""
     over = {f: b"\x00" * (n + 1024) for f, n in MAX_PAYLOAD.items()}

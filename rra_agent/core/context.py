@@ -186,13 +186,35 @@ class ContextMonitor:
             self.failures[m.name] += 1
             self.last_failure[m.name] = f"{type(e).__name__}: {e}"
             return None
-        if m.finite and isinstance(value, float) and not math.isfinite(value):
-            refused.setdefault("non_finite", f"{m.name} would be {value}")
-            return None
-        if m.plausible is not None and not m.plausible.admits(value):  # type: ignore[arg-type]
-            refused.setdefault("implausible", f"{m.name} would be {value}, {_bounds(m)}")
+        problem = value_problem(m, value)
+        if problem is not None:
+            refused.setdefault(problem[0], f"{m.name} would be {problem[1]}")
             return None
         return Computed(m.name, value, stamps)
+
+
+def value_problem(m: Measurement, value: Value) -> tuple[str, str] | None:
+    """(reason, what) when ``value``, of ``m``'s type, may not be a value of ``m``: NaN or an
+    infinity it does not allow, or outside its plausible bounds; None when it may."""
+    if m.finite and isinstance(value, float) and not math.isfinite(value):
+        return "non_finite", f"{value}"
+    if m.plausible is not None and not m.plausible.admits(value):  # type: ignore[arg-type]
+        return "implausible", f"{value}, {_bounds(m)}"
+    return None
+
+
+def measurement_problem(m: Measurement | None, value: Any) -> tuple[str, str] | None:
+    """(reason, what) when a measurement received on the bus (``ctx/<name>``) may not reach
+    the rules: a name the model does not declare (``unknown``), a value not of its declared
+    type (``wrong_type``), or one `value_problem` refuses; None when it may."""
+    if m is None:
+        return "unknown", "not a measurement of the model"
+    try:
+        typed = coerce(value, m.type)
+    except ValueError as e:
+        return "wrong_type", str(e)
+    problem = value_problem(m, typed)
+    return None if problem is None else (problem[0], f"{m.name} = {problem[1]}")
 
 
 def _bounds(m: Measurement) -> str:

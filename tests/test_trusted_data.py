@@ -251,9 +251,10 @@ def system_pss_mib(pid: int) -> float:
 def test_a_flood_of_oversized_samples_leaves_the_memory_where_it_was(
     system, bus, what: str, puts: list[tuple[str, int]]
 ):
-    """Before the routers stopped them, three 10 MB samples on four keys grew the system by
-    ~100-240 MiB PSS (decoded by each subscriber, then kept by its allocator); figures in
-    tools/bench_memory.py --flood. A generous bound: 24 MiB."""
+    """Before the routers stopped them, three 10 MB samples on four keys grew this system
+    by 250 MiB PSS and one 11 MB sample by 42 MiB (reassembled by every subscriber's Zenoh,
+    then kept by its allocator); the object-storing figures: tools/bench_memory.py --flood.
+    A generous bound: 24 MiB."""
     sys_ = system()
     spy = Spy(bus)
     try:

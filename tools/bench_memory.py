@@ -53,7 +53,6 @@ from _benchutil import interrupt, print_table
 
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.config import BusConfig, free_port
-from rra_agent.bus.counters import MAX_MESSAGE_SIZE
 from rra_agent.cli.status import gather
 from rra_agent.models.loader import load_package
 
@@ -267,6 +266,8 @@ def measure_flood(
 ) -> tuple[float, float]:
     """PSS (MiB) of the system before and ``settle`` s after a phase of `PHASES`."""
     import zenoh
+
+    from rra_agent.bus.counters import MAX_MESSAGE_SIZE
 
     extra: tuple[str, ...] = ()
     with tempfile.TemporaryDirectory(prefix="rra-memory-bus-") as tmp:

@@ -48,7 +48,6 @@ def _enc_hook(obj: Any) -> Any:
 
 
 _DATA_ENC = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
-_MAX_DATA = MAX_PAYLOAD["data"]
 _DATA_DEC = msgspec.msgpack.Decoder()
 
 
@@ -264,8 +263,12 @@ class NodeCore:
         pid: int = 0,
         monotonic: Callable[[], float] = time.monotonic,
         contained: bool = False,
+        max_data: int | None = None,
     ) -> None:
         self.spec = spec
+        #: The largest data sample accepted (the system's largest port limit; the routers
+        #: enforce each port's own first).
+        self.max_data = max_data or MAX_PAYLOAD["data"]
         self.transport = transport
         self.clock = clock
         #: For ages (of held samples): never set back, unlike the wall ``clock``.
@@ -363,8 +366,8 @@ class NodeCore:
         The per-sample hot path: decoding and the node call are inlined (no helper frames),
         and the lock is taken without ``with`` (half the cost).
         """
-        if len(payload) > _MAX_DATA:
-            self._drop(port, f"{len(payload)} bytes, more than the {_MAX_DATA} allowed")
+        if len(payload) > self.max_data:
+            self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return
         try:
             data = _DATA_DEC.decode(payload)
@@ -398,8 +401,8 @@ class NodeCore:
 
     def _valid(self, port: str, payload: bytes) -> bool:
         """Whether ``payload`` is a data sample `deliver` would accept (else dropped, counted)."""
-        if len(payload) > _MAX_DATA:
-            self._drop(port, f"{len(payload)} bytes, more than the {_MAX_DATA} allowed")
+        if len(payload) > self.max_data:
+            self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return False
         try:
             ok = isinstance(_DATA_DEC.decode(payload), dict)

@@ -24,7 +24,7 @@ from test_secure_system import secure  # noqa: F401 (the fixture)
 
 from rra_agent.bus import messages as m
 from rra_agent.cli import main
-from rra_agent.cli.status import WIDTH, EventFilter, format_event
+from rra_agent.cli.status import WIDTH, EventFilter, format_event, refused_section
 from rra_agent.engines.events import phase_durations
 
 
@@ -184,6 +184,29 @@ def test_a_saved_log_is_printed_in_time_order(tmp_path: Path, capsys) -> None:
     assert rc == 0
     stamps = [json.loads(line)["stamp"] for line in out.splitlines()]
     assert stamps == sorted(e.stamp for e in written)
+
+
+def test_refused_samples_are_the_monitor_leaders_per_source_and_reason_in_100_columns():
+    def monitor(leading: int, count: int) -> dict:
+        rows = [
+            {
+                "source": "robot_driver.battery",
+                "reason": "missing_field",
+                "count": count,
+                "last": "BatteryState: Object missing required field `voltage`\n" * 5,
+            },
+            {"source": "laser_scanner.scan", "reason": "non_finite", "count": 2},
+        ]
+        return {"role": "monitor", "counters": {"leading": leading}, "refused": rows}
+
+    status = {"stats": {"monitor:monitor-b": monitor(0, 3), "monitor:monitor-a": monitor(1, 4),
+                        "node:sink": {"role": "node", "counters": {}}}}  # fmt: skip
+    lines = refused_section(status)
+    assert lines[0].split() == ["REFUSED", "SAMPLES", "OF", "REASON", "COUNT", "LAST"]
+    assert lines[1].split()[:3] == ["robot_driver.battery", "missing_field", "4"]
+    assert lines[2].split() == ["laser_scanner.scan", "non_finite", "2"]
+    assert max(map(len, lines)) <= WIDTH and len(refused_section(status, wide=True)[1]) > WIDTH
+    assert refused_section({"stats": {}}) == []
 
 
 def test_the_filter_hides_only_cv_updates() -> None:

@@ -26,6 +26,7 @@ import pytest
 import zenoh
 from conftest import RELAY, System, package_copy
 from conftest import RELAY_KEYS as K
+from test_runtime import is_tick
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
@@ -340,9 +341,13 @@ def test_forged_and_invalid_selections_are_refused_and_bounded(system):
     # The Adaptation Engine's next selection sets it back, so watch what the sink does with
     # it (source value 1.0 + offset) instead of sampling the engine's state in between.
     outputs: list[float] = []
-    sub = sys_.client.session.declare_subscriber(
-        K.data("sink/out"), lambda s: outputs.append(decode_data(s.payload.to_bytes())["value"])
-    )
+
+    def on_output(sample: zenoh.Sample) -> None:
+        out = decode_data(sample.payload.to_bytes())
+        if is_tick(out):  # not a hostile client's forged sample, relayed as it is (--hostile)
+            outputs.append(out["value"])
+
+    sub = sys_.client.session.declare_subscriber(K.data("sink/out"), on_output)
     try:
         wait_until(lambda: outputs, 10, "the sink's output")
         put(["Direct", "Path", "Tuning"], {"Gain": 1e6}, real)

@@ -16,6 +16,7 @@ from conftest import pid_alive
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.counters import MAX_PAYLOAD
 from rra_agent.bus.keys import Keys
 from rra_agent.models.system import Command, Scheduling, Supervision
 from rra_agent.node import decode_data, encode_data
@@ -212,10 +213,15 @@ def test_unusable_implementation_goes_fatal_and_is_retried_later(agent):
 def test_malformed_requests_and_samples_crash_nothing_and_are_counted(agent, procs):
     proc, client, watch = agent
     start(client, watch, procs)
-    # Too large (an empty map padded to 17 MiB), then a good sample: only the first dropped.
-    pub = client.session.declare_publisher(K.data("src"))
+    # Too large (an empty map padded to 17 MiB): the agent's router drops it, the node never
+    # sees it. Just over the node's own limit (within the 64 bytes the router leaves for an
+    # attachment): the node drops it. Then a good sample: relayed.
+    pub = client.session.declare_publisher(
+        K.data("src"), congestion_control=zenoh.CongestionControl.BLOCK
+    )
     wait_until(lambda: pub.matching_status.matching, 5, "the relay's subscriber")
     pub.put(b"\x80" * (17 * 1024 * 1024))
+    pub.put(b"\x80" * (MAX_PAYLOAD["data"] + 16))
     pub.put(encode_data({"value": 1.0}))
     wait_until(lambda: watch.data, 10, "the good sample relayed")
     assert ok(client.node("relay", m.Stats()))["dropped"] == 1  # type: ignore[index]

@@ -8,6 +8,7 @@ deadlines instead of sleeps; no process may outlive a test.
 
 from __future__ import annotations
 
+import math
 import signal
 
 import pytest
@@ -174,10 +175,16 @@ def test_standby_replacement_is_prestarted_and_switched_by_activation(system, tm
 
 
 def ticks(out: list[dict]) -> list[dict]:
-    """The sink's outputs of the source's ticks (a hostile client's junk, relayed as it
-    is, has no numeric ``value`` and ``seq``)."""
-    return [o for o in out if isinstance(o.get("seq"), int)
-            and isinstance(o.get("value"), int | float)]  # fmt: skip
+    """The sink's outputs of the source's ticks: a well-typed ``Sample`` with a finite value
+    (a hostile client's forged samples, relayed as they are by the generic Relay nodes, are
+    ill-typed or not finite: a typed consumer drops them)."""
+    return [o for o in out if is_tick(o)]
+
+
+def is_tick(o: dict) -> bool:
+    seq, value = o.get("seq"), o.get("value")
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return isinstance(seq, int) and not isinstance(seq, bool) and number and math.isfinite(value)
 
 
 def tick_every_5_s(tmp_path, strategy: str):

@@ -362,6 +362,13 @@ CASES = [
         "closets",
         "unknown function 'closets' (did you mean 'closest'?",
     ),
+    (
+        "measurements.yaml",
+        "fields: {level: float, charging: bool}",
+        "fields: {level: float, charging: bool}\n    optional: [charge]",
+        "charge]",
+        "unknown field 'charge' of BatteryState (did you mean 'charging'?",
+    ),
     # rra.yaml
     (
         "rra.yaml",
@@ -579,3 +586,72 @@ def test_a_reachability_measurement_is_a_bool_without_function(tmp_path: Path) -
         ModelError, match=r"measurements.yaml:\d+:\d+: a 'reachable' measurement is of type bool"
     ):
         errors_of(root)
+
+
+# ---- what the Context Monitor may trust (finite, plausible, optional fields) ---------------
+@pytest.mark.parametrize(
+    ("old", "new", "token", "message"),
+    [
+        (
+            '    field: level\n    unit: "%"',
+            '    field: level\n    unit: "%"\n    plausible: {min: 5, max: 1}',
+            "{min: 5",
+            "'plausible' min 5.0 is above max 1.0",
+        ),
+        (
+            '    field: level\n    unit: "%"',
+            '    field: level\n    unit: "%"\n    plausible: {}',
+            "{}",
+            "'plausible' needs 'min', 'max' or both",
+        ),
+        (
+            "  - name: BattLev\n    type: float",
+            "  - name: BattLev\n    type: bool\n    plausible: {min: 0}",
+            "plausible",
+            "'plausible' bounds need a numeric measurement, not bool",
+        ),
+        (
+            "    unit: m\n    finite: false",
+            "    unit: m\n    finite: maybe",
+            "maybe",
+            "Expected `bool`, got `str`",
+        ),
+    ],
+    ids=["min-above-max", "no-bounds", "not-numeric", "finite-not-bool"],
+)
+def test_measurement_trust_settings_are_checked_where_they_are_written(
+    tmp_path: Path, old: str, new: str, token: str, message: str
+) -> None:
+    root = copy_mini(tmp_path)
+    text = plant(root, "measurements.yaml", old, new)
+    with pytest.raises(ModelError) as info:
+        load_package(root)
+    where = Location(str(root / "measurements.yaml"), *position(text, token))
+    assert (info.value.location, info.value.message) == (where, message), info.value.headline
+
+
+def test_a_measured_port_of_an_undeclared_type_is_a_warning(tmp_path: Path) -> None:
+    """Samples of a type measurements.yaml does not declare can only be checked to be maps:
+    `rra validate` says so at the measurement's source, and the package stays valid."""
+    from rra_agent.models.validate import measurement_warnings
+
+    root = copy_mini(tmp_path)
+    plant(root, "system.yaml", "{name: cmd_vel, direction: subscribe, type: Twist}",
+          "{name: cmd_vel, direction: subscribe, type: Twist}\n"
+          "      - {name: level, direction: publish, type: float}")  # fmt: skip
+    text = plant(root, "measurements.yaml", "source: driver.battery", "source: driver.level")
+    text = plant(root, "measurements.yaml", "    field: level\n", "")
+    text = plant(root, "measurements.yaml", "[navigation.cmd_vel, driver.battery]",
+                 "[navigation.cmd_vel, driver.level]")  # fmt: skip
+    pkg = load_package(root)
+    warnings = [str(w) for w in measurement_warnings(pkg)]
+    file = root / "measurements.yaml"
+    at = "{}:{}:{}".format(file, *position(text, "driver.level"))
+    at2 = "{}:{}:{}".format(file, *position(text, "driver.level", 2))
+    tail = (
+        "warning: 'driver.level' carries float, not a data type of data_types: the Context "
+        "Monitor can only check that its samples are maps (give the port a data type to have "
+        "every sample checked field by field)"
+    )
+    assert warnings == [f"{at}: {tail}", f"{at2}: {tail}"]
+    assert measurement_warnings(load_package(MINI)) == []

@@ -17,7 +17,17 @@ variable set (e.g. ``MALLOC_ARENA_MAX=2``), for experiments. ``--replicas N`` ru
 --replicas N`` (default 2: a leader and a hot standby of each engine), to show what the
 engines' standbys cost.
 
+``--flood``: what oversized samples cost. Once the system runs, the PSS of all its processes
+before, after three 10 MB samples on each of four keys (two data topics that the Context
+Monitor and components read, a measurement, the selection) and after one 11 MB well-formed
+``LaserScan`` (1.2 million ranges) on the laser's topic, each after ``--settle`` seconds.
+Measured twice: with the routers' limits (Zenoh's low-pass filter and largest reassembled
+message, `rra_agent.bus.counters.router_limits`) and with them switched off through
+``--bus-config`` (every process then receives the samples and only its own Python-side check
+drops them).
+
     .venv/bin/python tools/bench_memory.py [scenarios/object_storing] [--compare] [--env N=V]
+    .venv/bin/python tools/bench_memory.py --flood
 """
 
 from __future__ import annotations
@@ -32,6 +42,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -133,6 +144,15 @@ def _parent(pid: int) -> int:
         return 0
 
 
+def pss_kib(pid: int) -> int:
+    """The PSS of one process in KiB (``/proc/<pid>/smaps_rollup``), 0 if it is gone."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            return next((int(line.split()[1]) for line in f if line.startswith("Pss:")), 0)
+    except OSError:
+        return 0
+
+
 def mapping_kind(name: str) -> str:
     """A mapping of ``/proc/<pid>/smaps`` by what it holds."""
     if name.startswith("/dev/shm/") and name.endswith(".zenoh"):
@@ -181,17 +201,19 @@ def snapshot(root_pid: int) -> list[Process]:
     return [p for pid in descendants(root_pid) if (p := process_memory(pid, root_pid))]
 
 
-def measure(
-    package: Path, settle: float, env: dict[str, str], replicas: int = 2
-) -> tuple[list[Process], int]:
-    """(every process, components running) of ``rra up package``."""
+@contextlib.contextmanager
+def running(
+    package: Path, env: dict[str, str], replicas: int = 2, extra: tuple[str, ...] = ()
+) -> Iterator[tuple[subprocess.Popen, BusClient, dict]]:
+    """``rra up package`` deployed: (its process, a client of its bus, its status)."""
     system = load_package(package).system.system
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="rra-memory-") as run_dir:
         up = subprocess.Popen(
             [sys.executable, "-m", "rra_agent", "up", str(package), "--run-dir", run_dir,
-             "-q", "--connect", endpoint, "--no-multicast", "--replicas", str(replicas)],
+             "-q", "--connect", endpoint, "--no-multicast", "--replicas", str(replicas),
+             *extra],
             env={**os.environ, "RERUN_ANALYTICS": "0", **env},
         )  # fmt: skip
         client = None
@@ -199,12 +221,80 @@ def measure(
             wait_until(lambda: up.poll() is not None or _listening(port), 60, "rra up listening")
             client = BusClient(BusConfig(connect=[endpoint], multicast=False), system)
             st = wait_until(lambda: _deployed(client), 120, "the deployment", interval=0.5)
-            time.sleep(settle)
-            return snapshot(up.pid), len(st["engine"]["running"])
+            yield up, client, st
         finally:
             if client is not None:
                 client.close()
             interrupt(up)
+
+
+def measure(
+    package: Path, settle: float, env: dict[str, str], replicas: int = 2
+) -> tuple[list[Process], int]:
+    """(every process, components running) of ``rra up package``."""
+    with running(package, env, replicas) as (up, _client, st):
+        time.sleep(settle)
+        return snapshot(up.pid), len(st["engine"]["running"])
+
+
+def flood_keys(client: BusClient, package: Path) -> tuple[list[str], str]:
+    """Four keys with readers (a battery-like and a laser-like topic, a measurement, the
+    selection) and the laser's topic, of an object-storing-like package."""
+    k = client.keys
+    names = [meas.name for meas in load_package(package).measurements.measurements]
+    laser = k.data("laser_scanner/scan")
+    return [k.data("robot_driver/battery"), laser, k.ctx(names[0]), k.selection], laser
+
+
+def laser_scan(size: int) -> bytes:
+    """A well-formed LaserScan of about ``size`` bytes (msgpack floats are 9 bytes)."""
+    from rra_agent.node import encode_data
+
+    n = size // 9
+    return encode_data({"frame_id": "base_laser", "angle_min": -2.0, "angle_max": 2.0,
+                        "angle_increment": 4.0 / n, "range_min": 0.05, "range_max": 10.0,
+                        "ranges": [1.5] * n})  # fmt: skip
+
+
+#: What a flood phase sends: three 10 MB samples on each of four keys, or one 11 MB scan.
+PHASES = {"4x3x10MB": "three 10 MB samples on each of four keys", "11MB": "an 11 MB LaserScan",
+          "none": "nothing (the drift)"}  # fmt: skip
+
+
+def measure_flood(
+    package: Path, settle: float, env: dict[str, str], *, router_limits: bool, phase: str
+) -> tuple[float, float]:
+    """PSS (MiB) of the system before and ``settle`` s after a phase of `PHASES`."""
+    import zenoh
+
+    from rra_agent.bus.counters import MAX_MESSAGE_SIZE
+
+    extra: tuple[str, ...] = ()
+    with tempfile.TemporaryDirectory(prefix="rra-memory-bus-") as tmp:
+        if not router_limits:  # the routers' limits off: only the processes' own checks
+            off = {"zenoh": {"low_pass_filter": [], MAX_MESSAGE_SIZE: 1 << 30}}
+            (Path(tmp) / "bus.yaml").write_text(yaml.safe_dump(off))
+            extra = ("--bus-config", str(Path(tmp) / "bus.yaml"))
+        with running(package, env, extra=extra) as (up, client, _st):
+            keys, laser = flood_keys(client, package)
+            block = zenoh.CongestionControl.BLOCK
+            scan = laser_scan(11_000_000)
+            time.sleep(settle)
+            before = total_pss(up.pid)
+            if phase == "4x3x10MB":
+                big = b"\x00" * 10_000_000
+                for _ in range(3):
+                    for key in keys:
+                        client.session.put(key, big, congestion_control=block)
+            elif phase == "11MB":
+                client.session.put(laser, scan, congestion_control=block)
+            time.sleep(settle)
+            return before, total_pss(up.pid)
+
+
+def total_pss(root_pid: int) -> float:
+    """The PSS of ``rra up`` and every process under it, MiB."""
+    return sum(pss_kib(pid) for pid in descendants(root_pid)) / 1024
 
 
 def _listening(port: int) -> bool:
@@ -246,9 +336,13 @@ def main() -> int:
                     help="a variable for rra up and its processes (repeatable)")  # fmt: skip
     ap.add_argument("--replicas", type=int, default=2,
                     help="replicas of each engine (rra up --replicas; default 2)")  # fmt: skip
+    ap.add_argument("--flood", action="store_true",
+                    help="PSS before and after floods of oversized samples")  # fmt: skip
     args = ap.parse_args()
     env = dict(e.split("=", 1) for e in args.env)
     package = Path(args.package).resolve()
+    if args.flood:
+        return flood_report(package, args.settle, env)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rra-memory-pkg-") as tmp:
         layouts = ["processes", "one container"] if args.compare else (
@@ -265,6 +359,17 @@ def main() -> int:
     print(f"memory of {package.name} under rra up (every process: agent, engines, nodes){extra}")
     print_table(["layout", "components", "processes", "RSS MiB", "PSS MiB", "goal PSS MiB"],
                 rows)  # fmt: skip
+    return 0
+
+
+def flood_report(package: Path, settle: float, env: dict[str, str]) -> int:
+    rows = []
+    for name, on in (("routers' limits (Zenoh)", True), ("Python-side checks only", False)):
+        for phase in PHASES if on else ("4x3x10MB", "11MB"):
+            before, after = measure_flood(package, settle, env, router_limits=on, phase=phase)
+            rows.append([name, PHASES[phase], before, after, after - before])
+    print(f"\nPSS of {package.name} under rra up (MiB), a fresh system per row:")
+    print_table(["limits", "sent", "before", "after", "grew"], rows)
     return 0
 
 

@@ -4,15 +4,22 @@
 
 At ``--rate`` messages per second (until Ctrl-C, or for ``--seconds``) it cycles through:
 junk bytes and payloads over the size limit on every data, ctx, selection, events and
-inject key it has seen; selections forged with a fence no live leader holds, naming unknown
+inject key it has seen; data samples that are ill-typed (a field missing or of the wrong
+type), truncated msgpack, arrays, or that carry NaN and infinities, on every data key it
+has seen; payloads over their key family's limit on every family (data, ctx, selection,
+events, state, injections) and queries over it to every node, host and engine control
+endpoint (at most one every 2 s: the routers drop them, the network still carries them);
+selections forged with a fence no live leader holds, naming unknown
 features and CV values of 1e6; node requests with parameters out of their bounds, of the
 wrong type or unknown; malformed queries to every node, host and engine control endpoint;
 host requests the model does not allow (an undeclared command, a declared-looking one with
 injected ``PYTHONWARNINGS``/``BROWSER`` variables, a node name escaping the log folder, a
 spec update smuggling a command in).
-It never sends a valid unauthenticated command (that is access control's business): a
-runtime that is disturbed by it (a restart, a FATAL node, a value out of bounds, a lost
-adaptation) has a bug. Used by the tests with ``pytest --hostile`` and by hand.
+It never sends a valid unauthenticated command (that is access control's business), nor a
+well-typed plausible data sample: a runtime that is disturbed by it (a restart, a FATAL node,
+a value out of bounds, a lost adaptation, a measurement from a forged sample) has a bug. (A
+NaN in an otherwise well-typed sample is refused unless a measurement reading it says
+``finite: false``.) Used by the tests with ``pytest --hostile`` and by hand.
 On exit prints how many messages it sent.
 """
 
@@ -37,7 +44,25 @@ from rra_agent.bus.runtime import open_session
 from rra_agent.models.system import Command
 
 JUNK = [b"", b"\x00", b"\xc1\xff", b"\x81\xa1t\xa3zzz", bytes(range(256)), b"\x92\xa3sel\xc0"]
+_NAN, _INF = float("nan"), float("inf")
+#: Data samples a typed reader refuses: ill-typed, truncated, not a map, non-finite.
+FORGED_DATA = [
+    msgspec.msgpack.encode(x)
+    for x in (
+        {"value": 9.0},  # most fields missing
+        {"seq": "1", "value": 9.0, "level": "9"},  # strings for numbers
+        {"seq": True, "value": True, "level": True},  # booleans for numbers
+        {"seq": 1, "value": _NAN, "level": _NAN},
+        {"seq": 1, "value": _INF, "level": -_INF},
+        [1, 9.0],
+    )
+]
+FORGED_DATA.append(msgspec.msgpack.encode({"seq": 1, "value": 9.0, "level": 9.0})[:-5])
+#: Seconds between two payloads over a family's limit.
+OVERSIZED_EVERY = 2.0
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
+#: Families whose keys are asked (queries), not put to.
+QUERIED = ("node_ctl", "host_ctl", "engine_ctl")
 _ANY = m.Codec[Any](Any)
 
 
@@ -50,6 +75,11 @@ class Hostile:
         self.nodes: set[str] = set()
         self.hosts: set[str] = set()
         self.sent = 0
+        self.oversized_sent = 0
+        self._next_oversized = 0.0
+        self._families = itertools.cycle(
+            ["data", "ctx", "selection", "events", "state", "inject", *QUERIED]
+        )
         self.sub = session.declare_subscriber(keys.everything, self._learn)
 
     def _learn(self, sample: zenoh.Sample) -> None:
@@ -77,6 +107,39 @@ class Hostile:
         if family in ("ctx", "selection", "inject"):  # over the limit (data's is 16 MiB: no)
             payloads.append(b"\x00" * (MAX_PAYLOAD[family] + 1))
         self.session.put(key, self.rng.choice(payloads))
+
+    def forged_data(self) -> None:
+        with self.lock:
+            data = sorted(k for k in self.topics if "/data/" in k)
+        if data:
+            self.session.put(self.rng.choice(data), self.rng.choice(FORGED_DATA))
+
+    def oversized(self) -> None:
+        """A payload 1 KiB over its family's limit on the next family, every few seconds."""
+        now = time.monotonic()
+        if now < self._next_oversized:
+            return
+        self._next_oversized = now + OVERSIZED_EVERY
+        family = next(self._families)
+        payload = b"\x00" * (MAX_PAYLOAD[family] + 1024)
+        with self.lock:
+            data = sorted(k for k in self.topics if "/data/" in k) or [self.keys.data("x")]
+        keys = {
+            "data": self.rng.choice(data),
+            "ctx": self.keys.ctx("Level"),
+            "selection": self.keys.selection,
+            "events": self.keys.events,
+            "state": self.keys.state("resolution"),
+            "inject": self.keys.inject("motor/2"),
+            "node_ctl": self.keys.node_ctl(self.rng.choice(sorted(self.nodes) or ["sink"])),
+            "host_ctl": self.keys.host_ctl(self.rng.choice(sorted(self.hosts) or ["local"])),
+            "engine_ctl": self.keys.engine_ctl("resolution"),
+        }
+        if family in QUERIED:
+            self.query(keys[family], payload)
+        else:
+            self.session.put(keys[family], payload)
+        self.oversized_sent += 1
 
     def forged_selection(self) -> None:
         fence = self.rng.choice([None, m.Fence(epoch=10**9, leader="mallory")])
@@ -131,10 +194,13 @@ class Hostile:
             [
                 self.junk,
                 self.forged_selection,
+                self.forged_data,
                 self.junk,
                 self.bad_params,
                 self.bad_queries,
+                self.forged_data,
                 self.bad_host_requests,
+                self.oversized,
             ]
         )
         t0 = time.monotonic()
@@ -163,7 +229,7 @@ def main(argv: list[str]) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        print(f"hostile: sent {hostile.sent}", flush=True)
+        print(f"hostile: sent {hostile.sent} ({hostile.oversized_sent} oversized)", flush=True)
         hostile.sub.undeclare()
         session.close()
     return 0

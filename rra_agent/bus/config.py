@@ -42,11 +42,13 @@ import json
 import os
 import re
 import socket
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 import msgspec
 
+from rra_agent.bus.counters import MAX_MESSAGE_SIZE, MAX_PAYLOAD, router_limits
 from rra_agent.errors import RraError
 from rra_agent.models.base import FrozenModel
 
@@ -60,6 +62,8 @@ RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor":
 SHM_OPTIMIZATION = "transport/shared_memory/transport_optimization/enabled"
 #: Link protocols that authenticate and encrypt.
 SECURE_PROTOCOLS = ("tls/", "quic/")
+#: Zenoh settings of a host's router only (its payload limits), not of its clients.
+ROUTER_ONLY = frozenset({"low_pass_filter", MAX_MESSAGE_SIZE})
 
 
 def _split(endpoint: str) -> tuple[str, str, str]:
@@ -164,6 +168,9 @@ class BusConfig(FrozenModel, frozen=True):
     #: Raw Zenoh settings, key path -> JSON value, inserted verbatim after rra's own (they
     #: win): e.g. ``{"access_control": {...}, "transport/link/tls/enable_mtls": true}``.
     zenoh: dict[str, Any] = {}
+    #: The largest data sample of the system (its largest port limit), set by the host
+    #: agent from the model; None: the default (`rra_agent.bus.counters.MAX_PAYLOAD`).
+    max_data_bytes: int | None = None
 
     def __post_init__(self) -> None:
         if self.lease_ms < 100:
@@ -179,24 +186,41 @@ class BusConfig(FrozenModel, frozen=True):
         """Where this process finds its host's router (the first connect endpoint)."""
         return self.connect[0] if self.connect else DEFAULT_HUB
 
-    def host_router(self, *, hub: bool) -> BusConfig:
+    def host_router(
+        self, *, hub: bool, system: str | None = None, topics: Mapping[str, int] | None = None
+    ) -> BusConfig:
         """The configuration of a host agent's router. ``hub`` (``rra up``): listen on the
         hub endpoint and ``listen``, connect to the rest of ``connect``; otherwise listen on
-        ``listen`` (default loopback 7447) and connect to ``connect`` (other hosts)."""
+        ``listen`` (default loopback 7447) and connect to ``connect`` (other hosts).
+
+        The router enforces the payload limits of every key family (Zenoh's low-pass filter
+        and largest reassembled message, `rra_agent.bus.counters.router_limits`); ``topics``:
+        the data topics of ``system`` -> their limit (a port's ``max_bytes``)."""
         if hub:
             listen, connect = [self.hub, *self.listen], self.connect[1:]
         else:
             listen, connect = list(self.listen) or [DEFAULT_HUB], list(self.connect)
+        limits = router_limits(system, topics)
         cfg = msgspec.structs.replace(
-            self, mode="router", listen=_without_shadowed(listen), connect=connect
+            self,
+            mode="router",
+            listen=_without_shadowed(listen),
+            connect=connect,
+            zenoh={**limits, **self.zenoh},
+            max_data_bytes=max([MAX_PAYLOAD["data"], *(topics or {}).values()]),
         )
         cfg.check_exposure()
         return cfg
 
     def local_client(self) -> BusConfig:
-        """How the processes of this router's host connect to it: loopback, as clients."""
+        """How the processes of this router's host connect to it: loopback, as clients (the
+        router's own limits are not theirs to apply)."""
         return msgspec.structs.replace(
-            self, mode="client", listen=[], connect=[loopback_form(self.listen[0])]
+            self,
+            mode="client",
+            listen=[],
+            connect=[loopback_form(self.listen[0])],
+            zenoh={k: v for k, v in self.zenoh.items() if k not in ROUTER_ONLY},
         )
 
     def exposed(self) -> list[str]:

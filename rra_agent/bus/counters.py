@@ -6,36 +6,118 @@ load) and *rejected* (well-formed but refused: out of bounds, unknown names, sta
 fences). ``rra status`` shows them (`ProcessStats`). Refusals are logged through a
 `RateLimitedLog`: the first of each kind at once, then at most one line per period with
 the count since the last line, so a flood of junk costs a counter increment, not a log line.
+
+Size limits are enforced by Zenoh itself, in every host's router, before a sample reaches
+any process (`router_limits`): the router reassembles no message larger than the largest
+limit (``transport/link/rx/max_message_size``: a bigger one is dropped fragment by fragment,
+never held whole), and its ``low_pass_filter`` drops, per key family, what is over that
+family's limit, on the way in and out. The processes check the same limits again
+(`too_large`), in case a sample comes another way (e.g. a peer session that bypasses the
+router).
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from rra_agent.bus import messages as m
+from rra_agent.models.system import SystemModel
 
 KiB = 1024
 MiB = 1024 * KiB
 
-#: The largest payload accepted per key family (bytes). Larger ones are dropped and counted.
+#: The largest payload accepted per key family (bytes). Larger ones are dropped (by the
+#: routers; a process that still sees one counts it). ``data`` is the default of a port; a
+#: port declares more with ``max_bytes`` (system.yaml) when its samples are images or clouds.
 MAX_PAYLOAD: dict[str, int] = {
-    "data": 16 * MiB,  # point clouds, images
+    "data": 1 * MiB,  # the largest sample of the shipped systems is ~10 KiB
     "ctx": 16 * KiB,
     "selection": 256 * KiB,
     "events": 256 * KiB,
-    "state": 16 * MiB,
+    "state": 4 * MiB,  # the Run-time Configured System Model: ~0.4 KiB per node
     "node_ctl": 4 * MiB,  # exported state of a node being replaced
     "host_ctl": 4 * MiB,  # node specs
     "engine_ctl": 64 * KiB,
     "inject": 64 * KiB,
 }
+#: The keys of each family, below ``rra/<system>/`` (`rra_agent.bus.keys`).
+FAMILY_KEYS: dict[str, str] = {
+    "data": "data/**",
+    "ctx": "ctx/*",
+    "selection": "selection",
+    "events": "events",
+    "state": "state/*",
+    "node_ctl": "node/*/ctl",
+    "host_ctl": "host/*/ctl",
+    "engine_ctl": "engine/*/ctl",
+    "inject": "inject/**",
+}
+#: Control families: their requests are small, their replies may carry a system's state.
+_CONTROL = ("node_ctl", "host_ctl", "engine_ctl")
+#: Zenoh's setting for the largest message a router reassembles.
+MAX_MESSAGE_SIZE = "transport/link/rx/max_message_size"
+#: Zenoh's filter counts the attachment too (a sample's 8-byte send time): room for it.
+ATTACHMENT = 64
+#: Room for a message's key expression and headers in a reassembled message.
+HEADERS = 64 * KiB
 
 
 def too_large(family: str, size: int) -> bool:
     return size > MAX_PAYLOAD[family]
+
+
+def data_limit(max_bytes: int | None) -> int:
+    """The largest sample a data port accepts: its own ``max_bytes``, else the default."""
+    return MAX_PAYLOAD["data"] if max_bytes is None else max_bytes
+
+
+def topic_limits(system: SystemModel) -> dict[str, int]:
+    """Topic -> the largest sample on it, for every publishing port of ``system``."""
+    return {
+        port.topic or f"{comp.name}/{port.name}": data_limit(port.max_bytes)
+        for comp in system.components
+        for port in comp.ports
+        if port.direction == "publish"
+    }
+
+
+def router_limits(system: str | None, topics: Mapping[str, int] | None = None) -> dict[str, Any]:
+    """The Zenoh settings of a host's router that enforce the limits (see the module doc):
+    ``low_pass_filter`` rules per key family of every system (``rra/*/...``), the data rule
+    raised to the largest port limit of ``topics`` (the topics of ``system`` -> their limit)
+    and each topic under it kept to its own, and ``max_message_size`` at the largest limit.
+    """
+    topics = dict(topics or {})
+    data = max([MAX_PAYLOAD["data"], *topics.values()])
+    limits = {**MAX_PAYLOAD, "data": data}
+    largest = max(limits.values())
+    messages = ["put", "delete", "query", "reply"]
+    rules = [
+        _rule(f"rra-{family}", f"rra/*/{FAMILY_KEYS[family]}", limit, messages)
+        for family, limit in limits.items()
+        if family not in _CONTROL
+    ]
+    reply = max(limits[f] for f in ("state", *_CONTROL))
+    for family in _CONTROL:  # a request is small; a reply may be a whole state
+        key = f"rra/*/{FAMILY_KEYS[family]}"
+        rules.append(_rule(f"rra-{family}", key, limits[family], ["put", "delete", "query"]))
+        rules.append(_rule(f"rra-{family}-reply", key, reply, ["reply"]))
+    if system is not None:
+        for topic, limit in sorted(topics.items()):
+            if limit < data:
+                rules.append(
+                    _rule(f"rra-data-{topic}", f"rra/{system}/data/{topic}", limit, messages)
+                )
+    return {"low_pass_filter": rules, MAX_MESSAGE_SIZE: largest + HEADERS}
+
+
+def _rule(rid: str, key: str, limit: int, messages: list[str]) -> dict[str, Any]:
+    """A low-pass filter rule: ``messages`` on ``key`` larger than ``limit`` are dropped."""
+    return {"id": rid, "key_exprs": [key], "messages": messages, "size_limit": limit + ATTACHMENT}
 
 
 class RateLimitedLog:

@@ -283,6 +283,19 @@ class NodeInfo(Msg, tag="node_info"):
     rejected: int = 0
 
 
+class RefusedSamples(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """How many samples of one source the Context Monitor refused for one reason."""
+
+    #: The source interface, ``component.port``.
+    source: str
+    #: ``malformed``, ``not_a_map``, ``missing_field``, ``wrong_type``, ``non_finite``,
+    #: ``implausible`` or ``too_large`` (`rra_agent.core.samples.REASONS`).
+    reason: str
+    count: int
+    #: What was wrong with the newest one.
+    last: str = ""
+
+
 class ProcessStats(Msg, tag="process_stats"):
     """Counters of one process, for ``rra status``: samples and requests received, dropped
     (malformed, too large, or coalesced away under load) and rejected (refused: out of
@@ -298,6 +311,8 @@ class ProcessStats(Msg, tag="process_stats"):
     counters: dict[str, int] = {}
     #: A node's newest exception in a callback it went on after (``counters["errors"]``).
     failure: Failure | None = None
+    #: The Context Monitor: its refused samples, per source and reason.
+    refused: list[RefusedSamples] = []
 
 
 class Ok(Msg, tag="ok"):

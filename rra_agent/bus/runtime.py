@@ -279,6 +279,7 @@ class NodeRuntime:
                 transport,
                 logger=lambda s: print(s, file=sys.stderr, flush=True),
                 pid=os.getpid(),
+                max_data=self.bus.max_data_bytes,
             )
             self.core = core
             for name, port in core.ports.items():

@@ -76,9 +76,12 @@ def _run_validate(args: argparse.Namespace) -> int:
         print(f"{args.package}: {len(errors)} error(s)", file=sys.stderr)
         return 1
     from rra_agent.dsl.uvl import uvl_warnings
+    from rra_agent.models.validate import measurement_warnings
 
     for warning in uvl_warnings(pkg.features):  # UVL that the feature reasoning ignores
         print(warning)
+    for mwarning in measurement_warnings(pkg):  # sources whose samples cannot be typed
+        print(mwarning)
     print(f"{args.package}: ok ({_summary(pkg)})")
     return 0
 

@@ -2,7 +2,8 @@
 
 ``rra status`` asks the resolution engine for the current run-time selection and CV values,
 and every host agent for its nodes (host, state, pid, implementation, active flag, restarts);
-``--watch S`` redraws it every S seconds. ``rra events`` follows the adaptation events and
+``--watch S`` redraws it every S seconds; the samples the Context Monitor refused are listed
+per source and reason at the end. ``rra events`` follows the adaptation events and
 node-state transitions live (or prints a saved ``events.jsonl`` with ``--log``).
 """
 
@@ -199,6 +200,7 @@ def render(status: dict[str, Any], *, wide: bool = False) -> str:
         _hosts_section(status, wide),
         _nodes_section(status, wide),
         _failures_section(status, wide),
+        refused_section(status, wide),
     ]
     return "\n\n".join("\n".join(lines) for lines in sections if lines)
 
@@ -345,6 +347,22 @@ def _failure(raw: Any) -> m.Failure | None:
         return msgspec.convert(raw, m.Failure) if raw else None
     except msgspec.ValidationError:
         return None
+def refused_section(status: dict[str, Any], wide: bool = False) -> list[str]:
+    """One row per source and reason of the samples the Context Monitor refused (its
+    leader's counts; nothing when it refused none)."""
+    monitors = [v for v in status.get("stats", {}).values() if v.get("role") == "monitor"]
+    monitors.sort(key=lambda v: not (v.get("counters") or {}).get("leading"))
+    rows = monitors[0].get("refused") or [] if monitors else []
+    if not rows:
+        return []
+    lines = [f"{'REFUSED SAMPLES OF':<26} {'REASON':<13} {'COUNT':>7}  LAST"]
+    for r in rows:
+        line = (
+            f"{_cut(r['source'], 26, wide):<26} {r['reason']:<13} {r['count']:>7}  "
+            f"{' '.join(str(r.get('last', '')).split())}"
+        )
+        lines.append(_cut(line, WIDTH, wide))
+    return lines
 
 
 def _cut(text: str, width: int, wide: bool) -> str:

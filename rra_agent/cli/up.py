@@ -20,6 +20,7 @@ from pathlib import Path
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
+from rra_agent.bus.counters import topic_limits
 from rra_agent.deployment import Deployment, deploy
 from rra_agent.host.agent import (
     HostAgent,
@@ -173,6 +174,7 @@ def _run(
         run_dir / "logs",
         hub=True,
         catalog=catalog,
+        data_topics=topic_limits(dep.package.system),
         **security(args, dep, args.host),
     )
     agent.observers.append(state_printer(quiet=args.quiet))

@@ -8,9 +8,18 @@ value is obtained:
 - ``field``: that field of the sample;
 - neither: the sample's only field, else its ``value`` field.
 
+Samples are checked before they are used (`rra_agent.core.samples`): `decode` turns the raw
+bytes of a source into a sample of its port's declared data type, or a `Refusal` (missing
+field, wrong type, not msgpack, not a map). A measurement then refuses NaN and infinities in
+what it reads (the field; for a function, every number of its source samples) and in its
+value, unless it says ``finite: false``, and a value outside its ``plausible`` bounds. A
+refused sample is counted per source and reason in ``refusals`` and never yields a
+measurement (nor replaces a good sample a multi-input measurement keeps).
+
 The value is coerced to the declared type (``float``, ``int``, ``bool``, ``str``). A sample
-whose value cannot be obtained (missing field, function raised, wrong type) yields no
-measurement and is counted in ``failures`` with the reason; nothing here raises on bad data.
+whose value cannot be obtained otherwise (function raised, a value that does not fit the
+type) yields no measurement and is counted in ``failures`` with the reason; nothing here
+raises on bad data.
 
 Multi-input synchronisation (the paper's first future-work item):
 
@@ -25,11 +34,13 @@ Pure: no clock is read, no I/O; the shell passes samples with their stamps.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from rra_agent.core.samples import Decoder, Refusal, SampleTypes, Tally
 from rra_agent.models.measurements import Measurement, MeasurementsModel
 
 Value = float | int | bool | str
@@ -82,8 +93,15 @@ class _Spec:
 class ContextMonitor:
     """Feeds samples of ``component.port`` interfaces; returns the measurements they yield."""
 
-    def __init__(self, model: MeasurementsModel, functions: Mapping[str, Function]) -> None:
-        """``functions``: measurement name -> callable, for measurements with a function."""
+    def __init__(
+        self,
+        model: MeasurementsModel,
+        functions: Mapping[str, Function],
+        port_types: Mapping[str, str] | None = None,
+    ) -> None:
+        """``functions``: measurement name -> callable, for measurements with a function.
+        ``port_types``: ``component.port`` -> the type its port declares (a source whose
+        type is not a data type of ``model``, or not given, only needs maps)."""
         self.specs = [_Spec(m, functions.get(m.name)) for m in model.measurements]
         missing = [s.m.name for s in self.specs if s.m.function and s.fn is None]
         if missing:
@@ -92,24 +110,66 @@ class ContextMonitor:
         for s in self.specs:
             for src in s.m.inputs:
                 self.by_source[src].append(s)
+        types = SampleTypes(model.data_types)
+        self.decoders: dict[str, Decoder] = {
+            src: types.for_port((port_types or {}).get(src)) for src in self.by_source
+        }
         self.failures: dict[str, int] = defaultdict(int)
         self.last_failure: dict[str, str] = {}
+        #: Refused samples, per source and reason.
+        self.refusals = Tally()
 
     @property
     def sources(self) -> list[str]:
         """Every ``component.port`` the monitor listens to."""
         return sorted(self.by_source)
 
+    def decode(self, source: str, raw: bytes | memoryview) -> Mapping[str, Any] | None:
+        """A raw sample of ``source`` as its declared data type; None when it is refused
+        (counted in ``refusals``)."""
+        decoder = self.decoders.get(source)
+        if decoder is None:
+            return None
+        sample = decoder.decode(source, raw)
+        if isinstance(sample, Refusal):
+            self.refusals.add(sample)
+            return None
+        return sample
+
+    def on_raw(self, source: str, raw: bytes | memoryview, stamp: float) -> list[Computed]:
+        """`decode`, then `on_sample`."""
+        sample = self.decode(source, raw)
+        return [] if sample is None else self.on_sample(source, sample, stamp)
+
     def on_sample(self, source: str, sample: Mapping[str, Any], stamp: float) -> list[Computed]:
+        """The measurements a decoded sample of ``source`` yields (a refusal is counted once
+        per sample and reason, however many measurements refuse it)."""
         out = []
+        refused: dict[str, str] = {}
         for spec in self.by_source.get(source, ()):
+            why = self._unreadable(spec, source, sample)
+            if why is not None:
+                refused.setdefault("non_finite", why)
+                continue
             spec.latest[source] = (sample, stamp)
-            computed = self._compute(spec)
+            computed = self._compute(spec, refused)
             if computed is not None:
                 out.append(computed)
+        for reason, detail in refused.items():
+            self.refusals.add(Refusal(source, reason, detail))
         return out
 
-    def _compute(self, spec: _Spec) -> Computed | None:
+    def _unreadable(self, spec: _Spec, source: str, sample: Mapping[str, Any]) -> str | None:
+        """Why a function measurement may not read ``sample`` (a non-finite number in it)."""
+        if not spec.m.finite or spec.fn is None:
+            return None  # a field measurement reads one value: its value is checked
+        check = self.decoders[source].nonfinite
+        where = check(sample) if check is not None else None
+        if where is None:
+            return None
+        return f"{spec.m.name}: {source}{where or ''} is not finite"
+
+    def _compute(self, spec: _Spec, refused: dict[str, str]) -> Computed | None:
         m = spec.m
         inputs = m.inputs
         if len(spec.latest) < len(inputs):
@@ -126,4 +186,40 @@ class ContextMonitor:
             self.failures[m.name] += 1
             self.last_failure[m.name] = f"{type(e).__name__}: {e}"
             return None
+        problem = value_problem(m, value)
+        if problem is not None:
+            refused.setdefault(problem[0], f"{m.name} would be {problem[1]}")
+            return None
         return Computed(m.name, value, stamps)
+
+
+def value_problem(m: Measurement, value: Value) -> tuple[str, str] | None:
+    """(reason, what) when ``value``, of ``m``'s type, may not be a value of ``m``: NaN or an
+    infinity it does not allow, or outside its plausible bounds; None when it may."""
+    if m.finite and isinstance(value, float) and not math.isfinite(value):
+        return "non_finite", f"{value}"
+    if m.plausible is not None and not m.plausible.admits(value):  # type: ignore[arg-type]
+        return "implausible", f"{value}, {_bounds(m)}"
+    return None
+
+
+def measurement_problem(m: Measurement | None, value: Any) -> tuple[str, str] | None:
+    """(reason, what) when a measurement received on the bus (``ctx/<name>``) may not reach
+    the rules: a name the model does not declare (``unknown``), a value not of its declared
+    type (``wrong_type``), or one `value_problem` refuses; None when it may."""
+    if m is None:
+        return "unknown", "not a measurement of the model"
+    try:
+        typed = coerce(value, m.type)
+    except ValueError as e:
+        return "wrong_type", str(e)
+    problem = value_problem(m, typed)
+    return None if problem is None else (problem[0], f"{m.name} = {problem[1]}")
+
+
+def _bounds(m: Measurement) -> str:
+    assert m.plausible is not None
+    low, high = m.plausible.min, m.plausible.max
+    if low is not None and high is not None:
+        return f"outside [{low:g}, {high:g}]"
+    return f"below {low:g}" if low is not None else f"above {high:g}"

@@ -40,6 +40,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
 from rra_agent.core.availability import requirements, unavailable_features
+from rra_agent.core.context import measurement_problem
 from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
 from rra_agent.core.overrides import OverrideError
 from rra_agent.core.rules import Engine, TickResult
@@ -81,6 +82,8 @@ class AdaptationProcess(EngineProcess):
         self.resume_timeout = resume_timeout
         self.engine = Engine(dep.package.features, dep.selection, dep.package.adaptation)
         self.measurements: dict[str, tuple[object, float]] = {}
+        #: The measurements of the model: a value on ``ctx/*`` is checked against its own.
+        self.declared = {meas.name: meas for meas in dep.package.measurements.measurements}
         self.changed: set[str] = set()
         self.seq = 0
         self.last_sent = 0.0
@@ -110,6 +113,10 @@ class AdaptationProcess(EngineProcess):
             msg = _CTX.decode(raw)
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
             self.drop("malformed", f"measurement: {e}")
+            return
+        problem = measurement_problem(self.declared.get(msg.name), msg.value)
+        if problem is not None:  # forged on the bus: the Context Monitor never sends these
+            self.refuse(problem[0], f"measurement {msg.name}: {problem[1]}")
             return
         with self.lock:
             self.counters.received += 1
@@ -211,6 +218,8 @@ class AdaptationProcess(EngineProcess):
                 msg = _CTX.decode(reply.ok.payload.to_bytes())
             except (msgspec.DecodeError, msgspec.ValidationError):
                 continue
+            if measurement_problem(self.declared.get(msg.name), msg.value) is not None:
+                continue  # not a monitor's answer
             with self.lock:
                 known = self.measurements.get(msg.name)
                 if known is None or known[1] < msg.stamp:

@@ -5,9 +5,14 @@ interprets the model instead: it subscribes to every source interface the measur
 (the publisher's topic in the Deployment-time Configured System Model), feeds the samples to
 `rra_agent.core.context.ContextMonitor`, and publishes each Context Dependent Measurement on
 ``rra/<system>/ctx/<name>`` with its computation time and the send times of its sources.
-Malformed samples are dropped and counted.
 
-Overload: the Zenoh callback only keeps the newest sample of each source; the main loop
+Trust: a sample is decoded against its port's declared data type as it arrives, on the Zenoh
+thread (`rra_agent.core.samples`); one that is too large, not msgpack, ill-typed, or holds
+a non-finite or implausible value a measurement reads is refused: it never reaches the
+rules, never displaces the newest good sample of its source, and is counted per source and
+reason (``rra status``) and logged at most once per 10 s per kind.
+
+Overload: the Zenoh callback only keeps the newest good sample of each source; the main loop
 computes from those (latest-value coalescing: both synchronisation policies only ever use
 the newest sample of each source). A flood of samples on one source costs the others
 nothing but a dictionary write per sample, and is counted (``coalesced``).
@@ -47,9 +52,10 @@ import zenoh
 from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import too_large
+from rra_agent.bus.counters import data_limit, too_large
 from rra_agent.core.context import ContextMonitor
 from rra_agent.core.resolution import topic_of
+from rra_agent.core.samples import MALFORMED, Refusal
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
@@ -57,7 +63,6 @@ from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
 from rra_agent.models.pkgimport import add_package_path
 from rra_agent.models.system import parse_endpoint
-from rra_agent.node import decode_data
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
@@ -118,7 +123,12 @@ class MonitorProcess(EngineProcess):
 
     def __init__(self, dep: Deployment, bus: BusConfig, *, host: str = "local", name: str = NAME):
         super().__init__(dep, bus, host=host, name=name)
-        self.core = ContextMonitor(dep.package.measurements, measurement_functions(dep))
+        self.core = ContextMonitor(
+            dep.package.measurements, measurement_functions(dep), self._port_types()
+        )
+        self.core.refusals.observer = self._refused
+        #: The largest sample accepted from each source (its port's limit).
+        self.limits = {src: self._limit(src) for src in self.core.sources}
         self.published = 0
         self.publishers: dict[str, zenoh.Publisher] = {}
         #: The newest measurement of each name (answered to a restarted Adaptation Engine).
@@ -130,7 +140,7 @@ class MonitorProcess(EngineProcess):
             for meas in dep.package.measurements.measurements
         }
         #: Samples waiting to be processed: the newest per source (older ones coalesced).
-        self._pending: dict[str, tuple[bytes, float]] = {}
+        self._pending: dict[str, tuple[Any, float]] = {}
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
         #: Reachability measurements by host, and the hosts whose agent is reachable now.
@@ -152,20 +162,53 @@ class MonitorProcess(EngineProcess):
         ep = parse_endpoint(source)
         return self.keys.data(topic_of(self.dep.package.system, ep.component, ep.port))
 
-    # ---- bus (Zenoh thread): keep the newest sample per source, compute if the loop is idle
+    def _port_types(self) -> dict[str, str]:
+        """``component.port`` -> the type its port declares, for every measured source."""
+        system = self.dep.package.system
+        out = {}
+        for meas in self.dep.package.measurements.measurements:
+            for src in meas.inputs:
+                ep = parse_endpoint(src)
+                comp = system.component(ep.component)
+                port = comp.port(ep.port) if comp is not None else None
+                if port is not None:
+                    out[src] = port.type
+        return out
+
+    def _limit(self, source: str) -> int:
+        ep = parse_endpoint(source)
+        comp = self.dep.package.system.component(ep.component)
+        port = comp.port(ep.port) if comp is not None else None
+        return data_limit(port.max_bytes if port is not None else None)
+
+    def _refused(self, refusal: Refusal) -> None:
+        """Count a refused sample as the process's (dropped: malformed; else rejected)."""
+        detail = f"{refusal.source}: {refusal.detail}"
+        if refusal.reason in MALFORMED:
+            self.drop(refusal.reason, detail)
+        else:
+            self.refuse(refusal.reason, detail)
+
+    # ---- bus (Zenoh thread): keep the newest good sample per source, compute if idle ------
     def _on_sample(self, source: str) -> Callable[[zenoh.Sample], None]:
+        limit = self.limits[source]
+
         def callback(sample: zenoh.Sample) -> None:
-            raw = sample.payload.to_bytes()
-            if too_large("data", len(raw)):
-                self.drop("too_large", f"{len(raw)} bytes on {source}")
+            size = len(sample.payload)
+            if size > limit:  # Zenoh's router stops these first: defence in depth
+                detail = f"{size} bytes, more than the {limit} allowed"
+                self.core.refusals.add(Refusal(source, "too_large", detail))
                 return
+            data = self.core.decode(source, sample.payload.to_bytes())
+            if data is None:
+                return  # refused and counted: the newest good sample stays pending
             att = sample.attachment
             stamp = m.unpack_stamp(att.to_bytes() if att else None) or time.time()
             with self.lock:
                 self.counters.received += 1
                 if source in self._pending:
                     self.counters.bump("coalesced")
-                self._pending[source] = (raw, stamp)
+                self._pending[source] = (data, stamp)
                 schedule, self._scheduled = not self._scheduled, True
             if schedule and not self.loop.run_or_post(self._process):
                 with self.lock:
@@ -184,12 +227,7 @@ class MonitorProcess(EngineProcess):
         with self.lock:
             batch, self._pending = self._pending, {}
             self._scheduled = False
-        for source, (raw, stamp) in batch.items():
-            try:
-                data = decode_data(raw)
-            except ValueError as e:
-                self.drop("malformed", f"sample on {source}: {e}")
-                continue
+        for source, (data, stamp) in batch.items():
             for c in self.core.on_sample(source, data, stamp):
                 self._emit(
                     m.Measurement(name=c.name, value=c.value, stamp=time.time(), sources=c.sources)
@@ -307,7 +345,16 @@ class MonitorProcess(EngineProcess):
             self._host_seen(host, host in present)
 
     def extra_counters(self) -> dict[str, int]:
-        return {"published": self.published, "failures": sum(self.core.failures.values())}
+        return {
+            "published": self.published,
+            "failures": sum(self.core.failures.values()),
+            "refused": self.core.refusals.count(),
+        }
+
+    def stats(self) -> m.ProcessStats:
+        rows = self.core.refusals.rows()
+        refused = [m.RefusedSamples(source=s, reason=r, count=n, last=d) for s, r, n, d in rows]
+        return msgspec.structs.replace(super().stats(), refused=refused)
 
     # ---- lifecycle ---------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:

@@ -35,7 +35,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,7 @@ import zenoh
 from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, explain_open_failure, node_zid
-from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
+from rra_agent.bus.counters import Counters, RateLimitedLog, too_large, topic_limits
 from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
@@ -82,6 +82,7 @@ class HostAgent:
         catalog: Catalog,
         certs: str | Path | None = None,
         access_control: dict[str, Any] | None = None,
+        data_topics: Mapping[str, int] | None = None,
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -89,8 +90,9 @@ class HostAgent:
         self.host = check_chunk(host, "host")
         #: This agent's router is the hub (``rra up``): the tools' endpoint.
         self.hub = hub
-        #: This host's Zenoh router (run by this agent) and how its children connect to it.
-        router = bus.host_router(hub=hub)
+        #: This host's Zenoh router (run by this agent) and how its children connect to it;
+        #: it drops what is over its key family's or data topic's limit (``data_topics``).
+        router = bus.host_router(hub=hub, system=system, topics=data_topics)
         self.bus = router.local_client()
         if access_control is not None:
             router = msgspec.structs.replace(
@@ -742,6 +744,7 @@ def run(args) -> int:  # argparse.Namespace
         args.log_dir,
         hub=args.hub,
         catalog=catalog,
+        data_topics=topic_limits(dep.package.system),
         **security(args, dep, args.host),
     )
     quiet = getattr(args, "quiet", False)

@@ -232,8 +232,9 @@ class ContainerRuntime:
             node_cls = load_node_class(spec.implementation, spec.path)  # type: ignore[arg-type]
             # _stderr: the core prefixes its lines with the component's name itself.
             core = NodeCore(
-                spec, node_cls, transport, logger=_stderr, pid=os.getpid(), contained=True
-            )
+                spec, node_cls, transport, logger=_stderr, pid=os.getpid(), contained=True,
+                max_data=self.bus.max_data_bytes,
+            )  # fmt: skip
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = self.session.declare_queryable(

@@ -11,6 +11,13 @@ synchronisation policy: ``latest`` (recompute on every input from the latest val
 or ``window`` (recompute only when every input has a sample within ``window_ms`` of the newest).
 The function then receives one argument per source, in order.
 
+Data the monitor can trust: every sample of a measured source is decoded against its port's
+declared data type (a missing field or a value of the wrong type refuses the sample; a field
+listed in ``optional`` may be absent). A measurement refuses NaN and infinities in the values
+it reads and in the value it computes unless it says ``finite: false`` (a distance that is
+``inf`` when nothing is in sight), and a value outside its ``plausible`` bounds. Refused
+samples never reach the rules; the Context Monitor counts them per source and reason.
+
 A measurement may instead be a host's reachability (``reachable: base_station``, type
 ``bool``): true while that host's agent is reachable from the engines, false from the moment
 its link is lost (within the bus lease). The Context Monitor publishes it like any other, so
@@ -39,6 +46,8 @@ class DataType(FrozenModel, frozen=True):
 
     name: str
     fields: dict[str, str] = {}
+    #: Fields a sample may leave out (every other field is required).
+    optional: list[str] = []
     #: Function name -> dotted Python path of a callable taking one value of this type.
     functions: dict[str, str] = {}
     description: str | None = None
@@ -53,6 +62,23 @@ class Sync(FrozenModel, frozen=True):
             raise ValueError("the 'window' policy needs a positive window_ms")
         if self.policy == "latest" and self.window_ms is not None:
             raise ValueError("window_ms only applies to the 'window' policy")
+
+
+class Plausible(FrozenModel, frozen=True):
+    """The bounds a plausible value lies within (inclusive; either may be left out)."""
+
+    min: float | None = None
+    max: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.min is None and self.max is None:
+            raise ValueError("'plausible' needs 'min', 'max' or both")
+        if self.min is not None and self.max is not None and self.min > self.max:
+            raise ValueError(f"'plausible' min {self.min} is above max {self.max}")
+
+    def admits(self, value: float) -> bool:
+        """Whether ``value`` lies within the bounds (NaN never does)."""
+        return (self.min is None or value >= self.min) and (self.max is None or value <= self.max)
 
 
 class Measurement(FrozenModel, frozen=True):
@@ -72,6 +98,11 @@ class Measurement(FrozenModel, frozen=True):
     sync: Sync = Sync()
     #: A measurement older than this is stale (rule conditions reading it are undefined).
     max_age_ms: float | None = None
+    #: Refuse NaN and infinities in the values it reads and the value it computes (false:
+    #: they are legitimate, e.g. ``inf`` for "nothing in sight").
+    finite: bool = True
+    #: Values outside these bounds are refused (a numeric measurement only).
+    plausible: Plausible | None = None
     unit: str | None = None
     description: str | None = None
 
@@ -99,6 +130,8 @@ class Measurement(FrozenModel, frozen=True):
             raise ValueError("a multi-input measurement needs a function")
         if self.field is not None and self.function is not None:
             raise ValueError("'field' and 'function' are exclusive")
+        if self.plausible is not None and self.type not in ("float", "int"):
+            raise ValueError(f"'plausible' bounds need a numeric measurement, not {self.type}")
 
     @property
     def inputs(self) -> list[str]:

@@ -103,6 +103,16 @@ class Port(FrozenModel, frozen=True):
     direction: Direction
     type: str
     topic: str | None = None
+    #: A publisher: the largest sample it may send, in bytes (default 1 MiB,
+    #: `rra_agent.bus.counters.MAX_PAYLOAD`); larger ones are dropped by the routers.
+    max_bytes: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.max_bytes is not None:
+            if self.direction != "publish":
+                raise ValueError("'max_bytes' is a publisher's: its subscribers take what it sends")
+            if self.max_bytes <= 0:
+                raise ValueError(f"'max_bytes' must be positive, got {self.max_bytes}")
 
 
 class Supervision(FrozenModel, frozen=True):

@@ -15,11 +15,12 @@ import re
 import shutil
 import sys
 from collections.abc import Hashable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import TypeVar
 
-from rra_agent.errors import ModelError
+from rra_agent.errors import Location, ModelError
 from rra_agent.models.loader import SystemPackage
 from rra_agent.models.measurements import PRIMITIVE_TYPES, DataType, Measurement
 from rra_agent.models.pkgimport import add_package_path, shadowed_problem
@@ -396,6 +397,10 @@ class _Checker:
         for name, expr in dt.fields.items():
             if not self.type_known(expr):
                 self.error("measurements", (*path, "fields", name), self.unknown_type(expr))
+        for j, name in enumerate(dt.optional):
+            if name not in dt.fields:
+                msg = unknown_name("field", name, dt.fields, f" of {dt.name}")
+                self.error("measurements", (*path, "optional", j), msg)
         for name, dotted in dt.functions.items():
             problem = self.callable_problem(dotted)
             if problem:
@@ -469,6 +474,44 @@ class _Checker:
         if dotted not in self._callables:
             self._callables[dotted] = _callable_problem(dotted, self.pkg.root)
         return self._callables[dotted]
+
+
+# ---- warnings -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModelWarning:
+    """Something legal in a model that weakens a guarantee (printed by ``rra validate``)."""
+
+    message: str
+    location: Location | None
+
+    def __str__(self) -> str:
+        where = f"{self.location}: " if self.location is not None else ""
+        return f"{where}warning: {self.message}"
+
+
+def measurement_warnings(pkg: SystemPackage) -> list[ModelWarning]:
+    """A measured port whose type is not a declared data type: the Context Monitor can only
+    check that its samples are maps (no field, no type), so it says so, at the source."""
+    types = {t.name for t in pkg.measurements.data_types}
+    doc = pkg.doc("measurements")
+    out = []
+    for i, m in enumerate(pkg.measurements.measurements):
+        for j, src in enumerate(m.inputs):
+            ep = parse_endpoint(src)
+            comp = pkg.system.component(ep.component)
+            port = comp.port(ep.port) if comp is not None else None
+            if port is None or port.type in types:
+                continue
+            where = ("measurements", i, "source") if m.source else ("measurements", i, "sources", j)
+            out.append(
+                ModelWarning(
+                    f"'{src}' carries {port.type}, not a data type of data_types: the Context "
+                    "Monitor can only check that its samples are maps (give the port a data "
+                    "type to have every sample checked field by field)",
+                    doc.loc(*where),
+                )
+            )
+    return out
 
 
 # ---- plain helpers -----------------------------------------------------------------------

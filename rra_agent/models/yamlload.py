@@ -352,6 +352,9 @@ def _refine(node: Node, message: str) -> Node:
     dup = _DUP_RE.match(message)
     if dup:
         return _find_duplicate_name(node, dup["names"].split(", ")[0]) or node
+    named = re.match(r"'(\w+)' ", message)  # "'plausible' bounds need ...": at that key
+    if named:
+        return _key_node(node, named[1]) or node
     for _k, v in _entries(node):
         is_str = isinstance(v, ScalarNode) and v.tag == "tag:yaml.org,2002:str"
         if is_str and repr(v.value) in message:

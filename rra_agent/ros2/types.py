@@ -223,7 +223,8 @@ class TypeRegistry:
     def msg_text(self, ros_type: str) -> str:
         """The .msg text of a type alone (no dependencies), as ROS would write it."""
         text, _ = self.store.generate_msgdef(self.require(ros_type), ros_version=2)
-        return text.split("\n" + "=" * 80 + "\n", 1)[0]
+        own = text.split("=" * 80 + "\n", 1)[0]
+        return own if own.endswith("\n") or not own else own + "\n"
 
     def dependencies(self, ros_type: str) -> list[str]:
         """Every type ``ros_type`` refers to, itself excluded, depth first."""
@@ -238,6 +239,36 @@ class TypeRegistry:
 
         walk(ros_type)
         return list(seen)
+
+    def export(self, folder: str | Path, names: list[str]) -> list[Path]:
+        """Write ``<pkg>/msg/<Type>.msg`` (and ``<pkg>/srv/<Name>.srv``) for ``names`` and
+        every type they use under ``folder``: the offline message directory other ROS 2
+        tools without ROS (e.g. zenoh-ros2-sdk's registry) read."""
+        root = Path(folder)
+        todo: dict[str, None] = {}
+        for name in names:
+            if name in self.services:
+                todo[name] = None
+                for part in ("Request", "Response"):
+                    todo.update(dict.fromkeys(self.dependencies(f"{name}_{part}")))
+            else:
+                todo[self.require(name)] = None
+                todo.update(dict.fromkeys(self.dependencies(name)))
+        written = []
+        for name in todo:
+            pkg, kind, base = check_type_name(name)
+            if kind == "srv" and name not in self.services:
+                continue
+            if kind == "srv":
+                text = (f"{self.msg_text(name + '_Request')}---\n"
+                        f"{self.msg_text(name + '_Response')}")
+            else:
+                text = self.msg_text(name)
+            path = root / pkg / kind / f"{base}.{kind}"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+            written.append(path)
+        return written
 
     # -- CDR ------------------------------------------------------------------------------
 

@@ -36,6 +36,7 @@ DEFAULT_DISTRO = "jazzy"
 #: Distributions without type hashes in their key expressions.
 NO_HASH_DISTROS = {"humble"}
 
+EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
 #: Services rra-agent calls or serves, as .srv text (request ``---`` response); rosbags'
 #: stores hold messages only.
 SERVICES = {
@@ -91,6 +92,9 @@ class TypeRegistry:
         self.distro = distro
         self.store: Typestore = get_typestore(DISTROS[distro])
         self.services: set[str] = set()
+        if EVENT_INFO not in self.store.fielddefs:  # Humble has no service events
+            self.register_msg(EVENT_INFO, "uint8 event_type\nbuiltin_interfaces/Time stamp\n"
+                              "char[16] client_gid\nint64 sequence_number\n")
         for srv, text in SERVICES.items():
             self.register_srv(srv, text)
 
@@ -352,10 +356,13 @@ class TypeRegistry:
         node, rest = desc
         if node == Nodetype.NAME:
             return self.plain(rest, v)
-        if isinstance(v, np.ndarray):
-            return v.tolist()
         if node == Nodetype.BASE:
-            return v.item() if isinstance(v, np.generic) else v
+            v = v.item() if isinstance(v, np.generic) else v
+            # rosbags reads ``byte`` as int8; ROS 2's byte (octet) is 0..255
+            return v % 256 if rest[0] == "byte" and isinstance(v, int) else v
+        if isinstance(v, np.ndarray):
+            return (v.view(np.uint8) if v.dtype == np.int8 and rest[0][1][0] == "byte"
+                    else v).tolist()
         return [self._plain_value(rest[0], x) for x in v]
 
     # -- fields ---------------------------------------------------------------------------

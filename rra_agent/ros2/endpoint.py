@@ -97,9 +97,11 @@ class _Entity:
         node._entities.append(self)
 
     def close(self) -> None:
-        if self._lv is not None:
-            self._lv.undeclare()
-            self._lv = None
+        """Undeclare the token, then the endpoint (again: nothing)."""
+        if self._lv is None:
+            return
+        self._lv.undeclare()
+        self._lv = None
         self._undeclare()
 
     def _undeclare(self) -> None:  # pragma: no cover - each endpoint has its own

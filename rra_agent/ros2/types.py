@@ -264,8 +264,14 @@ class TypeRegistry:
             if kind == "srv" and name not in self.services:
                 continue
             if kind == "srv":
-                text = (f"{self.msg_text(name + '_Request')}---\n"
-                        f"{self.msg_text(name + '_Response')}")
+                parts = [self.msg_text(f"{name}_{p}") for p in ("Request", "Response")]
+                text = f"{parts[0]}---\n{parts[1]}"
+                for part, body in zip(("Request", "Response"), parts, strict=True):
+                    # what tools look up for a service's messages before the .srv
+                    sub = root / pkg / kind / f"{base}_{part}.msg"
+                    sub.parent.mkdir(parents=True, exist_ok=True)
+                    sub.write_text(body)
+                    written.append(sub)
             else:
                 text = self.msg_text(name)
             path = root / pkg / kind / f"{base}.{kind}"

@@ -6,9 +6,9 @@ implementation of rmw_zenoh) in a process of its own.
 Each line it prints on stdout is one JSON object; ``{"ready": ...}`` once its endpoints
 are declared. It runs until its stdin closes (the test closes it), then exits cleanly.
 Roles:
-  pub_battery      publish sensor_msgs/BatteryState on /battery every 20 ms (percentage i/100)
+  pub_battery [P]  publish sensor_msgs/BatteryState on /battery every P s (0.02; i/100 %)
   pub_string       publish std_msgs/String on /battery (a wrong type on that topic)
-  sub_battery      print every BatteryState received on /battery
+  sub_battery [T]  print every BatteryState received on topic T (/battery)
   serve            node /sdk_node: set_parameters, get_parameters and change_state servers
   call NODE        call NODE's set_parameters, get_parameters and change_state, print replies
   topic_info NAME  print what its graph knows of topic NAME and of NODE services
@@ -51,9 +51,11 @@ def main() -> None:
             things.append(pub)
             out(ready=pub.keyexpr)
 
+            period = float(args[0]) if args else 0.02
+
             def loop() -> None:
                 i = 0
-                while not closing.wait(0.02):
+                while not closing.wait(period):
                     i += 1
                     if string:
                         pub.publish(data=f"not a battery {i}")
@@ -66,7 +68,8 @@ def main() -> None:
                 out(percentage=float(msg.percentage), voltage=float(msg.voltage),
                     frame=msg.header.frame_id, cells=[float(x) for x in msg.cell_voltage])
 
-            sub = ROS2Subscriber("/battery", "sensor_msgs/msg/BatteryState", got,
+            sub = ROS2Subscriber(args[0] if args else "/battery",
+                                 "sensor_msgs/msg/BatteryState", got,
                                  node_name="battery_listener", **kw)
             things.append(sub)
             out(ready=sub.keyexpr)

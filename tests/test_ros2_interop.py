@@ -199,10 +199,11 @@ def test_rras_clients_call_the_sdks_services(rra, router, msg_dir, peers) -> Non
     finally:
         graph.close()
     params = ParameterClient(node, "/sdk_node")
+    life = LifecycleClient(node, "/sdk_node")
+    wait_until(lambda: params.available() and life.available(), 15, "the SDK's queryables")
     assert params.set({"speed": 2.5, "forbidden": 1.0}, timeout=5) == {
         "speed": None, "forbidden": "no"}
     assert params.get(["speed", "missing"], timeout=5) == {"speed": 2.5, "missing": None}
-    life = LifecycleClient(node, "/sdk_node")
     assert life.change("activate", timeout=5) is True
     assert peer.expect(lambda o: "transition" in o) == {"transition": 3, "success": True}
     assert life.change("activate", timeout=5) is False  # already active

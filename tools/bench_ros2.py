@@ -110,7 +110,7 @@ def lifecycle(port: int, msg_dir: Path, ctx: Ros2Context, ctx2: Ros2Context, n: 
     try:
         for target in ("/sdk_node", "/rra_managed"):
             client = LifecycleClient(node, target)
-            wait_until(lambda c=client: _ready(c), 20, f"{target}/change_state")
+            wait_until(client.available, 20, f"{target}/change_state")
             lat = []
             for i in range(n):
                 t0 = time.perf_counter()
@@ -121,14 +121,6 @@ def lifecycle(port: int, msg_dir: Path, ctx: Ros2Context, ctx2: Ros2Context, n: 
             stats(f"lifecycle switch, {who} ChangeState server", lat)
     finally:
         stop(p)
-
-
-def _ready(client: LifecycleClient) -> bool:
-    try:
-        client.change("configure", timeout=1)  # refused from inactive: a harmless probe
-        return True
-    except Exception:
-        return False
 
 
 def relay_switch(ctx: Ros2Context, ctx2: Ros2Context, n: int) -> None:

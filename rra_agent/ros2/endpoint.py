@@ -199,7 +199,7 @@ class Publisher(_Entity):
 
     def matched(self) -> bool:
         """Whether a subscriber matches now (the status object itself is always truthy)."""
-        return bool(getattr(self._pub.matching_status, "matching", False))
+        return _matching(self._pub.matching_status)
 
     def _undeclare(self) -> None:
         self._pub.undeclare()
@@ -366,7 +366,15 @@ class Client(_Entity):
         self.session = node.ctx.session
         self.seq = 0
         self._lock = threading.Lock()
+        # only for its matching status: whether a server is there right now
+        self._querier = node.ctx.session.declare_querier(
+            key.key, target=zenoh.QueryTarget.ALL_COMPLETE
+        )
         self._announce(node, key, qos)
+
+    def available(self) -> bool:
+        """Whether a server of this service is reachable now."""
+        return _matching(self._querier.matching_status)
 
     def call(self, request: Mapping[str, Any], timeout: float = 2.0) -> Message:
         """The response to ``request``; `ServiceTimeout` when no reply came within
@@ -395,10 +403,21 @@ class Client(_Entity):
                 return self.types.decode(f"{srv}_Response", reply.ok.payload.to_bytes())
             except DecodeError as e:
                 raise ServiceFailed(f"service {name}: bad response: {e}") from None
-        if time.monotonic() - start < timeout * 0.95:
-            raise ServiceFailed(f"no server for service {name} ({srv}) in domain "
-                                f"{self.key.domain}")
+        if time.monotonic() - start < timeout * 0.95:  # the call ended before its deadline
+            if not self.available():
+                raise ServiceFailed(f"no server for service {name} ({srv}) in domain "
+                                    f"{self.key.domain}")
+            raise ServiceFailed(f"service {name} ({srv}) ended the call without a reply")
         raise ServiceTimeout(f"service {name} ({srv}) did not answer within {timeout:g} s")
+
+    def _undeclare(self) -> None:
+        self._querier.undeclare()
+
+
+def _matching(status: Any) -> bool:
+    """A matching status: an object with ``matching`` (whose own truth is always true) or,
+    in some zenoh-python versions, a bool."""
+    return bool(getattr(status, "matching", status))
 
 
 __all__ = [

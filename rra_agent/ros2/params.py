@@ -87,6 +87,11 @@ class ParameterClient:
         self._get = node.client(f"{target}/get_parameters", "rcl_interfaces/srv/GetParameters")
         self._set = node.client(f"{target}/set_parameters", "rcl_interfaces/srv/SetParameters")
 
+    def available(self) -> bool:
+        """Whether both services are reachable now (a node's services can show in the graph
+        a moment before calls reach them)."""
+        return self._get.available() and self._set.available()
+
     def get(self, names: list[str], timeout: float = 2.0) -> dict[str, Any]:
         reply = self._get.call({"names": list(names)}, timeout)
         values = reply["values"]
@@ -155,6 +160,10 @@ class LifecycleClient:
         self.target = target
         self._change = node.client(f"{target}/change_state", "lifecycle_msgs/srv/ChangeState")
         self._get = node.client(f"{target}/get_state", "lifecycle_msgs/srv/GetState")
+
+    def available(self) -> bool:
+        """Whether ``change_state`` is reachable now."""
+        return self._change.available()
 
     def state(self, timeout: float = 2.0) -> str:
         reply = self._get.call({}, timeout)["current_state"]

@@ -21,7 +21,7 @@ from rra_agent.ros2 import attachment
 from rra_agent.ros2.bridge import EventTopic, TopicField, check_measurement, parse_source
 from rra_agent.ros2.endpoint import Received, Ros2Context
 from rra_agent.ros2.errors import BadName, FieldError, ServiceFailed, ServiceTimeout
-from rra_agent.ros2.graph import GraphWatcher
+from rra_agent.ros2.graph import GraphWatcher, query_graph
 from rra_agent.ros2.names import NO_TYPE_HASH, data_key
 from rra_agent.ros2.params import (
     LifecycleClient,
@@ -126,6 +126,8 @@ def test_odd_liveliness_tokens_are_refused_and_counted(bus: Bus) -> None:
         wait_until(lambda: watcher.snapshot().refused >= 2 and watcher.snapshot().find("/fine"),
                    10, "odd tokens refused, the good node seen")
         assert watcher.snapshot().refused == 2 and len(watcher.snapshot().nodes()) == 1
+        once = query_graph(bus.sessions[1], timeout=2)
+        assert once.refused == 2 and [n.fq_name for n in once.nodes()] == ["/fine"]
         for t in odd:
             t.undeclare()
         node.close()

@@ -3,7 +3,8 @@
 `Graph` is pure state: feed it token keys as they appear and disappear (`apply`) and ask
 it for nodes, topics and services. A token that does not parse is refused and counted
 (`refused`, `last_refused`), never raised. `GraphWatcher` is the thin Zenoh shell: a
-liveliness subscriber on ``@ros2_lv/<domain>/**`` with history, feeding a `Graph`.
+liveliness subscriber on ``@ros2_lv/<domain>/**`` with history, feeding a `Graph`;
+`query_graph` asks once.
 """
 
 from __future__ import annotations
@@ -155,6 +156,16 @@ class Graph:
 
 def _fit(text: str, width: int) -> str:
     return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def query_graph(session: Any, domain: int = 0, timeout: float = 1.0) -> Graph:
+    """The graph as the tokens alive now say (one liveliness query: for a one-shot tool
+    such as ``rra status``; a process that follows the graph uses `GraphWatcher`)."""
+    graph = Graph(domain)
+    for reply in session.liveliness().get(f"{ADMIN_SPACE}/{domain}/**", timeout=timeout):
+        if reply.ok is not None:
+            graph.apply(str(reply.ok.key_expr), True)
+    return graph
 
 
 class GraphWatcher:

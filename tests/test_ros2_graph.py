@@ -3,7 +3,9 @@ counted; the listing for `rra status` fits 100 columns."""
 
 from __future__ import annotations
 
-from rra_agent.ros2.graph import Graph
+import json
+
+from rra_agent.ros2.graph import Graph, graph_lines
 from rra_agent.ros2.tokens import Kind, Qos, Token
 
 H = "RIHS01_" + "ab" * 32
@@ -81,3 +83,4 @@ def test_the_listing_fits_100_columns() -> None:
     assert lines[0] == "ROS 2 graph (domain 0): 1 nodes, 1 tokens refused"
     assert all(len(line) <= 100 for line in lines)
     assert lines[2].startswith("    pub /segment_")
+    assert graph_lines(json.loads(json.dumps(g.to_json()))) == lines  # from rra status --json

@@ -142,16 +142,23 @@ class Graph:
 
     def lines(self, width: int = 100) -> list[str]:
         """A compact listing for ``rra status``: one line per node and per endpoint."""
-        out = [f"ROS 2 graph (domain {self.domain}): {len(self.nodes())} nodes"
-               + (f", {self.refused} tokens refused" if self.refused else "")]
-        tags = {Kind.PUBLISHER: "pub", Kind.SUBSCRIPTION: "sub", Kind.SERVICE: "srv",
-                Kind.CLIENT: "cli"}
-        for node in self.nodes():
-            out.append(_fit(f"  {node.fq_name}", width))
-            for kind, tag in tags.items():
-                for e in node.of(kind):
-                    out.append(_fit(f"    {tag} {e.name} [{e.ros_type}]", width))
-        return out
+        return graph_lines(self.to_json(), width)
+
+
+def graph_lines(graph: dict[str, Any], width: int = 100) -> list[str]:
+    """`Graph.lines` from `Graph.to_json` (what ``rra status --json`` carries)."""
+    nodes = graph.get("nodes", [])
+    refused = graph.get("refused_tokens", 0)
+    out = [f"ROS 2 graph (domain {graph.get('domain')}): {len(nodes)} nodes"
+           + (f", {refused} tokens refused" if refused else "")]
+    tags = (("publishers", "pub"), ("subscriptions", "sub"), ("services", "srv"),
+            ("clients", "cli"))
+    for node in nodes:
+        out.append(_fit(f"  {node['name']}", width))
+        for field_name, tag in tags:
+            for e in node.get(field_name, []):
+                out.append(_fit(f"    {tag} {e['name']} [{e['type']}]", width))
+    return out
 
 
 def _fit(text: str, width: int) -> str:

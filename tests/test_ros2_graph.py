@@ -62,6 +62,10 @@ def test_odd_tokens_are_counted_not_raised() -> None:
         assert g.apply(odd, True) is None
     assert g.refused == 4 and "not an rmw_zenoh liveliness token" in (g.last_refused or "")
     assert g.nodes() == []
+    g.apply("garbage", True)  # seen again: still one token
+    assert g.refused == 4
+    g.apply("garbage", False)
+    assert g.refused == 3
 
 
 def test_other_domains_are_left_out_unless_asked() -> None:

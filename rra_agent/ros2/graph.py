@@ -1,8 +1,8 @@
 """The live ROS 2 graph, from rmw_zenoh's liveliness tokens.
 
 `Graph` is pure state: feed it token keys as they appear and disappear (`apply`) and ask
-it for nodes, topics and services. A token that does not parse is refused and counted
-(`refused`, `last_refused`), never raised. `GraphWatcher` is the thin Zenoh shell: a
+it for nodes, topics and services. A token that does not parse is refused and counted while
+it is alive (`refused`, `last_refused`), never raised. `GraphWatcher` is the thin Zenoh shell: a
 liveliness subscriber on ``@ros2_lv/<domain>/**`` with history, feeding a `Graph`;
 `query_graph` asks once.
 """
@@ -71,19 +71,25 @@ class Graph:
     def __init__(self, domain: int | None = 0) -> None:
         self.domain = None if domain is None else check_domain(domain)
         self._tokens: dict[str, Token] = {}
-        self.refused = 0
+        #: Tokens alive now that were refused, and why.
+        self._refused: dict[str, str] = {}
         self.last_refused: str | None = None
+
+    @property
+    def refused(self) -> int:
+        """How many tokens alive now were refused (each counted once, however often seen)."""
+        return len(self._refused)
 
     def apply(self, key: str, alive: bool) -> Token | None:
         """Take one token's appearance (``alive``) or disappearance; the token, or None
         when it was refused (counted) or changes nothing."""
         if not alive:
+            self._refused.pop(key, None)
             return self._tokens.pop(key, None)
         try:
             token = parse_token(key)
         except BadToken as e:
-            self.refused += 1
-            self.last_refused = str(e)
+            self._refused[key] = self.last_refused = str(e)
             return None
         if self.domain is not None and token.domain != self.domain:
             return None
@@ -167,7 +173,9 @@ def _fit(text: str, width: int) -> str:
 
 def query_graph(session: Any, domain: int = 0, timeout: float = 1.0) -> Graph:
     """The graph as the tokens alive now say (one liveliness query: for a one-shot tool
-    such as ``rra status``; a process that follows the graph uses `GraphWatcher`)."""
+    such as ``rra status``; a process that follows the graph uses `GraphWatcher`, and reads
+    its snapshot: a liveliness query from a session that has a liveliness subscriber on
+    the same keys was seen to come back empty at once, now and then)."""
     graph = Graph(domain)
     for reply in session.liveliness().get(f"{ADMIN_SPACE}/{domain}/**", timeout=timeout):
         if reply.ok is not None:
@@ -206,7 +214,8 @@ class GraphWatcher:
         with self._lock:
             copy = Graph(self.graph.domain)
             copy._tokens = dict(self.graph._tokens)
-            copy.refused, copy.last_refused = self.graph.refused, self.graph.last_refused
+            copy._refused = dict(self.graph._refused)
+            copy.last_refused = self.graph.last_refused
         return copy
 
     def close(self) -> None:

@@ -12,7 +12,10 @@ read its topics, call its services and be seen from it:
   plain dicts, dotted field paths, RIHS01 type hashes;
 - `graph`: the live ROS 2 graph fed by liveliness tokens;
 - `endpoint`: nodes, publishers, subscriptions, service servers and clients on a session;
-- `params`: parameter and lifecycle services (rcl_interfaces, lifecycle_msgs).
+- `params`: parameter and lifecycle services (rcl_interfaces, lifecycle_msgs);
+- `bridge`: ROS 2 topic fields as measurement values, adaptation events as a ROS 2 topic;
+- `launch`: the command line and environment of a ``ros2: PACKAGE EXECUTABLE`` component;
+- `relay`: rewiring a ROS 2 subscriber through a relay instead of a restart.
 
 The wire format followed is documented in docs/ros2.md (`RMW_ZENOH` below).
 """

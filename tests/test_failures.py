@@ -309,7 +309,7 @@ def test_forged_and_invalid_selections_are_refused_and_bounded(system):
     sys_ = system()
     sel = m.Codec[m.SelectionMessage](m.SelectionMessage)
     adaptation = wait_until(lambda: engine_status(sys_, "adaptation"), 15, "the adaptation leader")
-    real = m.Fence(epoch=adaptation["leader"][0], leader=adaptation["leader"][1])
+    real = m.Fence.of(tuple(adaptation["leader"]))  # type: ignore[arg-type]
 
     def put(features: list[str], cv: dict, fence: m.Fence | None) -> None:
         sys_.client.session.put(K.selection, sel.encode(m.Selection(

@@ -64,7 +64,7 @@ def _ask(client: BusClient, request: m.EngineRequest, timeout: float) -> dict[st
         wait_until(
             lambda: list(
                 client.session.liveliness().get(
-                    f"{client.keys.lead('adaptation')}/*/*", timeout=0.5
+                    f"{client.keys.lead('adaptation')}/**", timeout=0.5
                 )
             ),
             timeout,

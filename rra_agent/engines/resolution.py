@@ -46,7 +46,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import too_large
 from rra_agent.core import resolution as r
-from rra_agent.core.election import Term, newer
+from rra_agent.core.election import Term, newer, parse_claim
 from rra_agent.core.features import check_selection, default_runtime_selection
 from rra_agent.core.rules import clamp_cv
 from rra_agent.deployment import Deployment
@@ -123,8 +123,9 @@ class ResolutionEngine(EngineProcess):
         #: The selection last acted on (each is acted on once; a retry clears it).
         self._taken: m.Selection | None = None
         self._waiting_for_claim = False
-        #: Live Adaptation Engine claims (replica -> epoch) and members: whose selections count.
-        self.adaptation_claims: dict[str, int] = {}
+        #: Live Adaptation Engine claims ((replica, instance) -> epoch) and members (names):
+        #: whose selections count.
+        self.adaptation_claims: dict[tuple[str, str], int] = {}
         self.adaptation_members: set[str] = set()
         self.failed: tuple[frozenset[str], tuple, float] | None = None
         self._next_reconcile = 0.0
@@ -214,7 +215,7 @@ class ResolutionEngine(EngineProcess):
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
             self.drop("malformed", f"engine state: {e}")
             return
-        if state.fence.leader != self.name:
+        if self.election is None or state.fence.instance != self.election.instance:
             self.loop.post(lambda: self._mirror(state))
 
     def _on_event(self, sample: zenoh.Sample) -> None:
@@ -256,8 +257,7 @@ class ResolutionEngine(EngineProcess):
         is mirrored (``trusted``: the answer of the role's endpoint before the election)."""
         if self.leading:
             return
-        term = (state.fence.epoch, state.fence.leader)
-        if not trusted and (self.election is None or term != self.election.leader):
+        if not trusted and (self.election is None or state.fence.term != self.election.leader):
             self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
             return
         old = self.mirror
@@ -269,7 +269,7 @@ class ResolutionEngine(EngineProcess):
         self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
         self.applied = state.applied
         if state.selection_fence is not None:
-            self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
+            self.selection_fence = state.selection_fence.term
         self.publish_status()
 
     def stalled(self) -> None:
@@ -362,7 +362,7 @@ class ResolutionEngine(EngineProcess):
         if fence is None:
             self.refuse("unfenced selection", f"selection {msg.seq} carries no fence")
             return None
-        term = (fence.epoch, fence.leader)
+        term = fence.term
         if not self._from_adaptation_leader(term):
             self._waiting_for_claim = True  # acted on again when a new claim shows up
             self.refuse(
@@ -399,8 +399,8 @@ class ResolutionEngine(EngineProcess):
     def _from_adaptation_leader(self, term: Term) -> bool:
         """The term of a live Adaptation Engine claim (or of a live replica claiming above
         every claim seen: its claim token may still be on its way)."""
-        epoch, leader = term
-        if self.adaptation_claims.get(leader) == epoch:
+        epoch, leader, instance = term
+        if self.adaptation_claims.get((leader, instance)) == epoch:
             return True
         newest = max(self.adaptation_claims.values(), default=0)
         return leader in self.adaptation_members and epoch > newest
@@ -414,12 +414,12 @@ class ResolutionEngine(EngineProcess):
                 (self.adaptation_members.add if alive else self.adaptation_members.discard)(
                     parts[-1]
                 )
-            elif parts[-2].isdigit():
-                epoch, replica = int(parts[-2]), parts[-1]
+            elif (term := parse_claim(parts[-3:])) is not None:
+                epoch, who = term[0], term[1:]
                 if alive:
-                    self.adaptation_claims[replica] = epoch
-                elif self.adaptation_claims.get(replica) == epoch:
-                    del self.adaptation_claims[replica]
+                    self.adaptation_claims[who] = epoch
+                elif self.adaptation_claims.get(who) == epoch:
+                    del self.adaptation_claims[who]
             if self._waiting_for_claim:
                 self._waiting_for_claim, self._taken = False, None
                 self._take_latest()
@@ -663,7 +663,7 @@ class ResolutionEngine(EngineProcess):
             cv=dict(self.cv),
             overrides={n: dict(v) for n, v in self.overrides.items()},
             applied=self.applied,
-            selection_fence=m.Fence(epoch=sel[0], leader=sel[1]) if sel else None,
+            selection_fence=m.Fence.of(sel) if sel else None,
             running=list(self.executor.running.values()),
             standby=list(self.executor.standby.values()),
             forced=dict(self.forced),
@@ -715,7 +715,7 @@ class ResolutionEngine(EngineProcess):
         self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
         self.applied = state.applied
         if state.selection_fence is not None:
-            self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
+            self.selection_fence = state.selection_fence.term
 
     def status(self) -> dict[str, Any]:
         running, standby = self.executor.running, self.executor.standby
@@ -827,7 +827,7 @@ class ResolutionEngine(EngineProcess):
             session.declare_subscriber(self.keys.events, self._on_event),
             lv.declare_subscriber(self.keys.host_alive_all, self._on_host, history=True),
             lv.declare_subscriber(
-                f"{self.keys.lead('adaptation')}/*/*", self._on_adaptation_token, history=True
+                f"{self.keys.lead('adaptation')}/**", self._on_adaptation_token, history=True
             ),
             lv.declare_subscriber(
                 self.keys.member("adaptation", "*"), self._on_adaptation_token, history=True

@@ -366,7 +366,7 @@ class HostAgent:
     def _admit(self, fence: m.Fence | None) -> bool:
         if fence is None:
             return True
-        term = (fence.epoch, fence.leader)
+        term = fence.term
         if not newer(term, self.fence):
             return False
         self.fence = term
@@ -433,9 +433,7 @@ class HostAgent:
         """The spec with this agent's newest fence (the node refuses older leaders too)."""
         if self.fence is None:
             return spec
-        return msgspec.structs.replace(
-            spec, fence=m.Fence(epoch=self.fence[0], leader=self.fence[1])
-        )
+        return msgspec.structs.replace(spec, fence=m.Fence.of(self.fence))
 
     def _learn_rerun(self) -> None:
         """Log to the run's one Rerun recording, as the first host's nodes do: the engine's

@@ -664,7 +664,8 @@ def test_a_leader_refused_as_superseded_steps_down(agent, procs):
     try:
         election.start()
         assert election.leading and changes == [True]  # alone on the bus: it claims
-        election.claims["resolution-a"] = election.term[0]  # type: ignore[index]  # the winner's claim, seen
+        # the winner's claim, seen
+        election.claims[("resolution-a", "1f")] = election.term[0]  # type: ignore[index]
         election.step_down()
         assert not election.leading and changes == [True, False]
     finally:

@@ -173,6 +173,7 @@ def _run(
         run_dir / "logs",
         hub=True,
         catalog=catalog,
+        engines=True,
         **security(args, dep, args.host),
     )
     agent.observers.append(state_printer(quiet=args.quiet))

@@ -51,7 +51,7 @@ from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
-from rra_agent.host import scheduling
+from rra_agent.host import scheduling, unique
 from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
@@ -84,8 +84,12 @@ class HostAgent:
         access_control: dict[str, Any] | None = None,
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
+        engines: bool = False,
     ) -> None:
         self.keys = Keys(system)
+        #: This agent starts the system's engines (``rra up``): a system whose engines run
+        #: on the bus already is refused at start (`rra_agent.host.unique`).
+        self.engines = engines
         self.host = check_chunk(host, "host")
         #: This agent's router is the hub (``rra up``): the tools' endpoint.
         self.hub = hub
@@ -595,6 +599,7 @@ class HostAgent:
             raise explain_open_failure(e, self.session_bus, hub=self.hub) from None
         self.session = session
         try:
+            self._check_alone(session)
             self._publisher = session.declare_publisher(
                 self.keys.events,
                 congestion_control=zenoh.CongestionControl.BLOCK,
@@ -620,6 +625,16 @@ class HostAgent:
             self._entities = []
             session.close()
             self.session = None
+
+    def _check_alone(self, session: zenoh.Session) -> None:
+        """Before declaring anything: refuse to be a second agent of this host, or (``rra
+        up``) a second set of engines of this system, on this bus (one line)."""
+        who = "rra up" if self.engines else "rra agent"
+        why = unique.refusal(
+            session, self.session_bus, self.keys, self.host, engines=self.engines, who=who
+        )
+        if why is not None:
+            raise RraError(why)
 
     def _shutdown(self) -> None:
         """Stop every node with the escalation policy; wait until all have exited (the

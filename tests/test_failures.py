@@ -116,6 +116,108 @@ def test_a_stalled_hub_restarts_nothing_and_loses_no_state(system, hog):
     assert sys_.ctl("source", m.Describe()).result["params"]["value"] == 3.0
 
 
+ENGINE_ROLES = ("monitor", "adaptation", "resolution")
+
+
+def leaders_settled(sys_: System) -> dict[str, list] | None:
+    """Each role's leader term, once every replica of every role runs and names the same
+    leader as the role (no takeover under way); None before."""
+    st = sys_.gather()
+    if len(pids(st)) != 9:
+        return None
+    out = {}
+    for role in ENGINE_ROLES:
+        lead = (engine_status(sys_, role) or {}).get("leader")
+        if not lead:
+            return None
+        for replica in (f"{role}-a", f"{role}-b"):
+            status = engine_status(sys_, replica)
+            if not status or status["leader"] != lead or status["leading"] != (lead[1] == replica):
+                return None
+        out[role] = lead
+    return out
+
+
+def takeovers(sys_: System, after: float) -> list[m.AdaptationEvent]:
+    return [e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+            and e.kind == "takeover" and e.stamp >= after]  # fmt: skip
+
+
+def test_a_stalled_hub_moves_no_leadership(system, hog):
+    """A 1 s stall of the host agent (``rra up``: the hub's router too), five times, with
+    both cores busy: shorter than the failure-detection budget (the transport lease less a
+    keep-alive period, 1.75 s), so no link expires and no engine role changes its leader
+    or epoch (with a 500 ms lease every role moved at every stall)."""
+    sys_ = system()
+    before = wait_until(lambda: leaders_settled(sys_), 30, "every engine role led, settled")
+    pids_before = pids(sys_.gather())
+    started = time.time()
+    for i in range(5):
+        stall(sys_.proc.pid, 1.0)  # the fault: rra up (agent, router, supervisor) stalls
+        now = wait_until(lambda: leaders_settled(sys_), 30, f"stall {i}: the bus back, settled")
+        assert now == before, f"stall {i}: the leadership moved: {before} -> {now}"
+    assert not takeovers(sys_, started)
+    assert pids(sys_.gather()) == pids_before
+
+
+def test_a_killed_leader_is_replaced_from_its_closed_link_not_the_lease(system):
+    """kill -9 of each role's leader: its link to the router closes with it, so its
+    standby claims at once, well within the lease (2 s): the budget for stalls costs a
+    dead leader nothing."""
+    sys_ = system()
+    for role in ENGINE_ROLES:
+        took = kill_leader(sys_, role)
+        assert took < 1.0, f"{role}: the standby claimed {took:.3f} s after the kill"
+
+
+def kill_leader(sys_: System, role: str) -> float:
+    """kill -9 the leader of ``role``: seconds until a new claim reached this session; then
+    wait until the killed replica follows again."""
+    lead = wait_until(lambda: leaders_settled(sys_), 30, "every engine role led")[role]
+    claims: list[tuple[float, str]] = []
+
+    def on_claim(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            claims.append((time.monotonic(), str(sample.key_expr)))
+
+    def new_claim() -> float | None:
+        return next((t for t, key in claims if f"/{lead[0]:010d}/" not in key), None)
+
+    sub = sys_.client.session.liveliness().declare_subscriber(f"{K.lead(role)}/**", on_claim)
+    try:
+        pid = sys_.node(sys_.gather(), lead[1])["pid"]
+        t0 = time.monotonic()
+        os.kill(pid, signal.SIGKILL)
+        took = wait_until(new_claim, 10, f"a new {role} leader") - t0
+    finally:
+        sub.undeclare()
+    wait_until(lambda: (leaders_settled(sys_) or {}).get(role, lead) != lead, 30,
+               f"the killed {role} replica back as a standby")  # fmt: skip
+    return took
+
+
+def test_a_frozen_leader_is_replaced_after_the_lease_and_fenced_off_when_it_resumes(system):
+    """SIGSTOP of the Resolution Engine leader for longer than the budget: its claim expires
+    with the lease (not before the budget), the standby takes over, and the resumed one
+    steps down and acts no more (its fence is refused)."""
+    sys_ = system()
+    lead = wait_until(lambda: leaders_settled(sys_), 30, "every engine role led")["resolution"]
+    pid = sys_.node(sys_.gather(), lead[1])["pid"]
+    t0 = time.monotonic()
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        wait_until(lambda: role_leader(sys_) not in ("", lead[1]), 20, "a new leader",
+                   interval=0.02)  # fmt: skip
+        took = time.monotonic() - t0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    assert took >= 1.5, f"a frozen leader replaced after {took:.2f} s: within the budget"
+    sys_.wait(lambda s: replica_leads(sys_, lead[1]) is False, f"the resumed {lead[1]} following")
+    sys_.set_level(7.0)
+    sys_.wait(lambda s: "filtered" in s["engine"]["running"] and not s["engine"]["failed"],
+              "the new leader adapting")  # fmt: skip
+
+
 def test_nodes_stopped_behind_the_engines_back_are_started_again(system):
     sys_ = system()
     before = pids(sys_.wait(lambda s: len(pids(s)) == 9, "all nine processes running"))

@@ -62,6 +62,13 @@ class Events:
                 and e.stamp >= after
             ]  # fmt: skip
 
+    def adaptation(self, kind: str, after: float = 0.0) -> list[m.AdaptationEvent]:
+        with self.lock:
+            return [
+                e for e in self.items
+                if isinstance(e, m.AdaptationEvent) and e.kind == kind and e.stamp >= after
+            ]  # fmt: skip
+
 
 def pids(st: dict) -> dict[str, int]:
     return {n["node"]: n["pid"] for n in st["nodes"] if n["state"] == "RUNNING"}
@@ -268,7 +275,8 @@ def test_an_operators_parameter_survives_a_kill(system):
         set_params(sys_.client, "sink", {"nope": 1})
 
 
-def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
+def sink_on_h2(tmp_path: Path) -> Path:
+    """The relay system with its sink on a second host, h2 (no ``reachable:`` measurement)."""
     pkg = package_copy(tmp_path)
     import yaml
 
@@ -277,6 +285,11 @@ def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
     for c in data["components"]:
         c["host"] = "h2" if c["name"] == "sink" else "local"
     (pkg / "system.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    return pkg
+
+
+def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
+    pkg = sink_on_h2(tmp_path)
 
     h2_router = f"tcp/127.0.0.1:{free_port()}"
 
@@ -309,6 +322,63 @@ def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
                    and sys_.node(s, "sink")["pid"] != old, "sink back on h2")  # fmt: skip
     assert sys_.node(st, "sink")["host"] == "h2"
     assert sys_.ctl("sink", m.Describe()).result["params"]["offset"] == 6.0
+
+
+def test_a_partition_is_one_event_and_one_log_line_without_a_reachable_measurement(
+    system, procs, bus, tmp_path
+):
+    """h2's link to the first host is cut like a pulled cable (nothing passes, nobody is
+    told) for a few seconds: the model declares no ``reachable:`` measurement, yet the cut
+    and its end are each one adaptation event (``host_unreachable``, ``host_reachable``)
+    and one line in the Context Monitor leader's log, whichever replica leads; h2's sink
+    runs on under its own agent (same pid, no restart)."""
+    from rra_agent.bus.config import BusConfig
+    from rra_agent.scenario.link import Link
+
+    pkg = sink_on_h2(tmp_path)
+    link = Link(("127.0.0.1", int(bus.connect[0].rsplit(":", 1)[1])))
+    link.start()
+    try:
+        procs.python(
+            "rra_agent", "agent", "--system", "relay_system", "--host", "h2",
+            "--package", str(pkg), "--log-dir", str(tmp_path / "h2-logs"),
+            "--connect", link.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}",
+            "--no-multicast", name="agent-h2",
+        )  # fmt: skip
+        sys_ = system(pkg)
+        events = Events(sys_.client)
+        st = sys_.wait(lambda s: sys_.node(s, "sink")["state"] == "RUNNING"
+                       and leaders_on(sys_), "sink running on h2, the engines led")  # fmt: skip
+        sink = sys_.node(st, "sink")["pid"]
+        t0 = time.time()
+        link.cut()
+        gone = wait_until(lambda: events.adaptation("host_unreachable", t0), 15, "the event")
+        detected = gone[0].stamp - t0
+        budget = BusConfig().budget_ms / 1000.0
+        assert budget * 0.9 <= detected < 6.0, f"seen {detected:.2f} s after the cut"
+        assert "host h2 is unreachable" in gone[0].message
+        link.restore()
+        back = wait_until(lambda: events.adaptation("host_reachable", t0), 30, "the return")
+        assert "host h2 is reachable again" in back[0].message
+        # Converged: h2's sink answers through the restored link, as before the cut.
+        st = sys_.wait(lambda s: s["engine"]["hosts"].get("h2") is True
+                       and sys_.node(s, "sink")["state"] == "RUNNING", "h2 back")  # fmt: skip
+        assert sys_.node(st, "sink")["pid"] == sink and not sys_.node(st, "sink").get("restarts")
+        # Exactly one event per transition, though two monitor replicas saw both.
+        assert len(events.adaptation("host_unreachable", t0)) == 1
+        assert len(events.adaptation("host_reachable", t0)) == 1
+        logs = "".join(
+            (sys_.run_dir / "logs" / f"monitor-{r}.log").read_text(errors="replace") for r in "ab"
+        )
+        assert logs.count("host h2 is unreachable") == 1, logs
+        assert logs.count("host h2 is reachable again") == 1, logs
+    finally:
+        link.close()
+
+
+def leaders_on(sys_: System) -> bool:
+    """Every engine role answers with a leader."""
+    return all((engine_status(sys_, role) or {}).get("leader") for role in ENGINE_ROLES)
 
 
 def test_leaders_killed_and_frozen_in_a_loop_never_act_together(system):

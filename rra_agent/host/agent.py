@@ -623,7 +623,11 @@ class HostAgent:
             for entity in self._entities:
                 entity.undeclare()
             self._entities = []
-            session.close()
+            try:
+                session.close()
+            except zenoh.ZError as e:  # Zenoh's 10 s: e.g. a link being opened to a router
+                # that is gone (seen once when both hosts were stopped together)
+                print(f"rra agent {self.host}: closing the bus session: {e}".split(" at /")[0])
             self.session = None
 
     def _check_alone(self, session: zenoh.Session) -> None:

@@ -532,12 +532,15 @@ class HostAgent:
         ]
 
     def identity(self) -> dict[str, Any]:
-        """Its answer to a ``Ping``: pid, host and its router's endpoints (``rra status``)."""
+        """Its answer to a ``Ping``: pid, host, its router's endpoints (``rra status``) and
+        its fork server's pid (None while it has none)."""
+        zygote = self.local.zygote
         return {
             "pid": os.getpid(),
             "host": self.host,
             "listen": list(self.session_bus.listen),
             "connect": list(self.session_bus.connect),
+            "fork_server": zygote.pid if zygote is not None else None,
         }
 
     def stats(self) -> m.ProcessStats:

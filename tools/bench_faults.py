@@ -417,7 +417,14 @@ class System:
         assert self.client is not None
         client = self.client
         until(lambda: node in {n for _, n in client.alive()}, 10, f"{node}'s token", 0.05)
-        reply = client.node(node, m.Describe())
+
+        def describe() -> m.Reply | None:
+            try:
+                return client.node(node, m.Describe())
+            except NoReply:  # its token can reach us before its control endpoint's route
+                return None  # (a node of another host, just reconnected)
+
+        reply = until(describe, 15, f"{node} answering", 0.1)
         return reply.result["params"].get(name) if isinstance(reply, m.Ok) else None
 
     def engine(self, name: str) -> dict | None:

@@ -14,8 +14,12 @@ anything, asks the bus:
 Either is refused with one line naming where the other runs (its host, its agent's pid and
 router endpoints, from a ``Ping``); nothing has been started yet. A linked router's tokens
 reach this one only after Zenoh has computed its routing trees (100 ms after a link
-changes; 0.10-0.16 s measured, with both cores busy), so the answer "nobody" is only trusted
-after `SETTLE` (a token seen earlier refuses at once). What this cannot see: a
+changes; 0.10-0.16 s measured, with both cores busy), so the answer "nobody" is trusted only
+`CONFIRM` after the first host agent token of any system has arrived from behind the links
+(every rra router has one), or at `SETTLE` after the links are up if none comes (a plain
+router, or an agent still starting); a token seen earlier refuses at once. An agent whose
+links hold its connection without answering (a router not listening yet behind a relay)
+waits for them up to `LINK_WAIT`. What this cannot see: a
 system on the other side of a partition, or routers that link to this one only later (a
 ``--listen`` endpoint another router dials). Those are kept apart by the leaders' terms,
 which name the process (`rra_agent.core.election`): two leaders of one replica name are
@@ -32,13 +36,16 @@ import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, accepts_tcp
-from rra_agent.bus.keys import Keys
+from rra_agent.bus.keys import ROOT, Keys
 
 #: How long a starting agent waits for its router's links to the routers it connects to.
 LINK_WAIT = 3.0
 #: How long after its links are up a starting agent keeps looking for the tokens of
-#: another system behind them (Zenoh's routing trees: 100 ms after a link changes).
+#: another system behind them (Zenoh's routing trees: 100 ms after a link changes)...
 SETTLE = 0.5
+#: ... or after the first host agent token from behind them: one more look, in case the
+#: linked router's tokens came in more than one batch.
+CONFIRM = 0.1
 #: How long a liveliness query or a Ping may take to be answered.
 ANSWER = 1.0
 _ANY = m.Codec[Any](Any)
@@ -66,15 +73,19 @@ def refusal(
     who: str,
     settle: float = SETTLE,
 ) -> str | None:
-    """Why this agent must not serve (one line), or None: asked again until ``settle``
-    after this router's links are up (at once when it has none)."""
+    """Why this agent must not serve (one line), or None: asked again until the linked
+    routers' tokens are in (`CONFIRM` after the first host agent token, at most ``settle``
+    after this router's links are up; at once when it has none)."""
     linked = wait_linked(session, bus)
     deadline = time.monotonic() + (settle if linked else 0.0)
     while True:
         why = already_running(session, keys, host, engines=engines, who=who)
-        if why is not None or time.monotonic() >= deadline:
+        now = time.monotonic()
+        if why is not None or now >= deadline:
             return why
-        time.sleep(0.05)
+        if tokens(session, f"{ROOT}/*/hostagent/*"):  # the linked routers' tokens are in
+            deadline = min(deadline, now + CONFIRM)
+        time.sleep(0.02)
 
 
 def tokens(session: zenoh.Session, key: str) -> list[str]:

@@ -1122,7 +1122,7 @@ FOOTNOTES = {
     "host agent's answer to a Ping",
     "second-up": "a second `rra up` of the package, its hub elsewhere, its router linked to "
     "the first's (--connect); detected = its start -> its exit, refused in one line (it waits "
-    "for its link and 0.5 s for the other routers' tokens); the first system: same pids, same "
+    "for its link and for the other routers' tokens: 0.1-0.5 s); the first system: same pids, same "
     "leader terms",
     "freeze-leader": f"SIGSTOP of the resolution leader until its successor took over, then "
     f"SIGCONT; detected = the successor's leader token reaching this session, recovered = its "

@@ -308,7 +308,7 @@ class NodeCore:
         #: the whole traceback, later times a rate-limited line.
         self._traced: set[tuple[str, str, str]] = set()
         #: The newest leader fence accepted (requests with older ones are refused).
-        self.fence: Term | None = (spec.fence.epoch, spec.fence.leader) if spec.fence else None
+        self.fence: Term | None = spec.fence.term if spec.fence else None
         self._refusals = RateLimitedLog(self.log)
         self.stop_requested = threading.Event()
         try:
@@ -506,7 +506,7 @@ class NodeCore:
 
     def _admit(self, fence: m.Fence) -> bool:
         """Accept requests of this leader from now on, unless a newer one has acted."""
-        term = (fence.epoch, fence.leader)
+        term = fence.term
         if not newer(term, self.fence):
             return False
         self.fence = term

@@ -167,10 +167,11 @@ def hub_port() -> int:
 
 @pytest.fixture
 def bus(hub_port: int):
-    """A BusConfig connecting to this test's hub endpoint on loopback, multicast off."""
+    """A BusConfig connecting to this test's hub endpoint on loopback, multicast off (the
+    shipped lease: a stall of the hub does not cut this session off)."""
     from rra_agent.bus.config import BusConfig
 
-    return BusConfig(connect=[f"tcp/127.0.0.1:{hub_port}"], multicast=False, lease_ms=500)
+    return BusConfig(connect=[f"tcp/127.0.0.1:{hub_port}"], multicast=False)
 
 
 # ---- a whole system: `rra up` of tests/data/relay_system ---------------------------------------
@@ -219,7 +220,7 @@ class System:
         self.run_dir = run_dir
         self.proc = procs.python(
             "rra_agent", "up", str(package), "--run-dir", str(run_dir), "-q",
-            "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra,
+            "--connect", bus.connect[0], "--no-multicast", *extra,
             name="up",
         )  # fmt: skip
         # A loaded machine can take many seconds to start `rra up`: connect once it listens.

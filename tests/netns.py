@@ -24,6 +24,9 @@ own loopback (a router on ``127.0.0.1:7447`` in each host does not clash).
   reports) any process still inside one of its namespaces, and deletes the namespaces,
   even after a failure.
 
+The namespaces' prefix is ``rra`` unless ``RRA_NETNS_PREFIX`` says otherwise (the pid keeps
+two runs apart anyway).
+
 pytest: ``from netns import network`` in a test module gives the ``network`` fixture, a
 factory ``network("A", "B")`` -> `Network`; the test is skipped (with ``ip``'s own error)
 where namespaces cannot be made, and fails if a process outlived it.
@@ -158,7 +161,8 @@ class Network:
         if not hosts or len(set(hosts)) != len(hosts) or len(hosts) > 250:
             raise ValueError(f"hosts must be 1..250 distinct names, not {hosts!r}")
         n = next(_counter)
-        self.prefix = f"rra{os.getpid()}n{n}"
+        # ``RRA_NETNS_PREFIX`` names them apart from other users of the machine's namespaces
+        self.prefix = f"{os.environ.get('RRA_NETNS_PREFIX', 'rra')}{os.getpid()}n{n}"
         self.subnet = 1 + (n - 1) % 250  # the k of 10.<k>.0.<i>
         self.hosts = list(hosts)
         self.bridge_ns = f"{self.prefix}br"

@@ -9,16 +9,28 @@ from hypothesis import strategies as st
 
 from rra_agent.core.election import leader_of, newer, next_epoch, parse_claim, should_claim
 
-terms = st.tuples(st.integers(0, 5), st.sampled_from(["a", "b", "c", "ab"]))
+terms = st.tuples(
+    st.integers(0, 5), st.sampled_from(["a", "b", "c", "ab"]), st.sampled_from(["1f", "2e"])
+)
 
 
 def test_newer_orders_by_epoch_then_smaller_name() -> None:
-    assert newer((2, "b"), (1, "a"))
-    assert not newer((1, "a"), (2, "b"))
-    assert newer((2, "a"), (2, "b"))
-    assert not newer((2, "b"), (2, "a"))
-    assert newer((2, "b"), (2, "b"))  # the same leader again
-    assert newer((0, "z"), None)
+    assert newer((2, "b", "9"), (1, "a", "1"))
+    assert not newer((1, "a", "1"), (2, "b", "9"))
+    assert newer((2, "a", "9"), (2, "b", "1"))
+    assert not newer((2, "b", "1"), (2, "a", "9"))
+    assert newer((2, "b", "5"), (2, "b", "5"))  # the same leader again
+    assert newer((0, "z", "1"), None)
+
+
+def test_two_processes_of_one_replica_name_are_two_terms() -> None:
+    """A replica name running twice (a second system on the bus, the sides of a partition):
+    the same epoch and name, another instance. A receiver that has accepted one refuses
+    the other, and the election elects one of them."""
+    first, second = (1, "resolution-a", "1f3c"), (1, "resolution-a", "7a02")
+    assert newer(first, second) != newer(second, first)
+    assert not newer(second, first)  # accepted ``first``: ``second`` is refused
+    assert leader_of([second, first]) == first == leader_of([first, second])
 
 
 @given(st.lists(terms, min_size=1))
@@ -50,13 +62,14 @@ def test_first_member_claims_only_when_nobody_leads() -> None:
     assert should_claim("a", {"a", "b"}, [])
     assert not should_claim("b", {"a", "b"}, [])
     assert should_claim("b", {"b"}, [])  # a is gone
-    assert not should_claim("a", {"a", "b"}, [(3, "b")])
+    assert not should_claim("a", {"a", "b"}, [(3, "b", "1")])
     assert should_claim("b", set(), [])  # its own token not seen yet: still a member
 
 
 def test_next_epoch_and_claim_keys() -> None:
     assert next_epoch([], []) == 1
     assert next_epoch([3, 1], [7]) == 8
-    assert parse_claim(["12", "resolution-b"]) == (12, "resolution-b")
-    assert parse_claim(["x", "a"]) is None
+    assert parse_claim(["12", "resolution-b", "7a02"]) == (12, "resolution-b", "7a02")
+    assert parse_claim(["12", "resolution-b"]) is None  # no instance
+    assert parse_claim(["x", "a", "1"]) is None
     assert parse_claim(["1"]) is None

@@ -63,6 +63,13 @@ class Events:
                 and e.stamp >= after
             ]  # fmt: skip
 
+    def adaptation(self, kind: str, after: float = 0.0) -> list[m.AdaptationEvent]:
+        with self.lock:
+            return [
+                e for e in self.items
+                if isinstance(e, m.AdaptationEvent) and e.kind == kind and e.stamp >= after
+            ]  # fmt: skip
+
 
 def pids(st: dict) -> dict[str, int]:
     return {n["node"]: n["pid"] for n in st["nodes"] if n["state"] == "RUNNING"}
@@ -117,6 +124,108 @@ def test_a_stalled_hub_restarts_nothing_and_loses_no_state(system, hog):
     assert sys_.ctl("source", m.Describe()).result["params"]["value"] == 3.0
 
 
+ENGINE_ROLES = ("monitor", "adaptation", "resolution")
+
+
+def leaders_settled(sys_: System) -> dict[str, list] | None:
+    """Each role's leader term, once every replica of every role runs and names the same
+    leader as the role (no takeover under way); None before."""
+    st = sys_.gather()
+    if len(pids(st)) != 9:
+        return None
+    out = {}
+    for role in ENGINE_ROLES:
+        lead = (engine_status(sys_, role) or {}).get("leader")
+        if not lead:
+            return None
+        for replica in (f"{role}-a", f"{role}-b"):
+            status = engine_status(sys_, replica)
+            if not status or status["leader"] != lead or status["leading"] != (lead[1] == replica):
+                return None
+        out[role] = lead
+    return out
+
+
+def takeovers(sys_: System, after: float) -> list[m.AdaptationEvent]:
+    return [e for e in sys_.events() if isinstance(e, m.AdaptationEvent)
+            and e.kind == "takeover" and e.stamp >= after]  # fmt: skip
+
+
+def test_a_stalled_hub_moves_no_leadership(system, hog):
+    """A 1 s stall of the host agent (``rra up``: the hub's router too), five times, with
+    both cores busy: shorter than the failure-detection budget (the transport lease less a
+    keep-alive period, 1.75 s), so no link expires and no engine role changes its leader
+    or epoch (with a 500 ms lease every role moved at every stall)."""
+    sys_ = system()
+    before = wait_until(lambda: leaders_settled(sys_), 30, "every engine role led, settled")
+    pids_before = pids(sys_.gather())
+    started = time.time()
+    for i in range(5):
+        stall(sys_.proc.pid, 1.0)  # the fault: rra up (agent, router, supervisor) stalls
+        now = wait_until(lambda: leaders_settled(sys_), 30, f"stall {i}: the bus back, settled")
+        assert now == before, f"stall {i}: the leadership moved: {before} -> {now}"
+    assert not takeovers(sys_, started)
+    assert pids(sys_.gather()) == pids_before
+
+
+def test_a_killed_leader_is_replaced_from_its_closed_link_not_the_lease(system):
+    """kill -9 of each role's leader: its link to the router closes with it, so its
+    standby claims at once, well within the lease (2 s): the budget for stalls costs a
+    dead leader nothing."""
+    sys_ = system()
+    for role in ENGINE_ROLES:
+        took = kill_leader(sys_, role)
+        assert took < 1.0, f"{role}: the standby claimed {took:.3f} s after the kill"
+
+
+def kill_leader(sys_: System, role: str) -> float:
+    """kill -9 the leader of ``role``: seconds until a new claim reached this session; then
+    wait until the killed replica follows again."""
+    lead = wait_until(lambda: leaders_settled(sys_), 30, "every engine role led")[role]
+    claims: list[tuple[float, str]] = []
+
+    def on_claim(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            claims.append((time.monotonic(), str(sample.key_expr)))
+
+    def new_claim() -> float | None:
+        return next((t for t, key in claims if f"/{lead[0]:010d}/" not in key), None)
+
+    sub = sys_.client.session.liveliness().declare_subscriber(f"{K.lead(role)}/**", on_claim)
+    try:
+        pid = sys_.node(sys_.gather(), lead[1])["pid"]
+        t0 = time.monotonic()
+        os.kill(pid, signal.SIGKILL)
+        took = wait_until(new_claim, 10, f"a new {role} leader") - t0
+    finally:
+        sub.undeclare()
+    wait_until(lambda: (leaders_settled(sys_) or {}).get(role, lead) != lead, 30,
+               f"the killed {role} replica back as a standby")  # fmt: skip
+    return took
+
+
+def test_a_frozen_leader_is_replaced_after_the_lease_and_fenced_off_when_it_resumes(system):
+    """SIGSTOP of the Resolution Engine leader for longer than the budget: its claim expires
+    with the lease (not before the budget), the standby takes over, and the resumed one
+    steps down and acts no more (its fence is refused)."""
+    sys_ = system()
+    lead = wait_until(lambda: leaders_settled(sys_), 30, "every engine role led")["resolution"]
+    pid = sys_.node(sys_.gather(), lead[1])["pid"]
+    t0 = time.monotonic()
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        wait_until(lambda: role_leader(sys_) not in ("", lead[1]), 20, "a new leader",
+                   interval=0.02)  # fmt: skip
+        took = time.monotonic() - t0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    assert took >= 1.5, f"a frozen leader replaced after {took:.2f} s: within the budget"
+    sys_.wait(lambda s: replica_leads(sys_, lead[1]) is False, f"the resumed {lead[1]} following")
+    sys_.set_level(7.0)
+    sys_.wait(lambda s: "filtered" in s["engine"]["running"] and not s["engine"]["failed"],
+              "the new leader adapting")  # fmt: skip
+
+
 def test_nodes_stopped_behind_the_engines_back_are_started_again(system):
     sys_ = system()
     before = pids(sys_.wait(lambda s: len(pids(s)) == 9, "all nine processes running"))
@@ -167,7 +276,8 @@ def test_an_operators_parameter_survives_a_kill(system):
         set_params(sys_.client, "sink", {"nope": 1})
 
 
-def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
+def sink_on_h2(tmp_path: Path) -> Path:
+    """The relay system with its sink on a second host, h2 (no ``reachable:`` measurement)."""
     pkg = package_copy(tmp_path)
     import yaml
 
@@ -176,6 +286,11 @@ def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
     for c in data["components"]:
         c["host"] = "h2" if c["name"] == "sink" else "local"
     (pkg / "system.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    return pkg
+
+
+def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
+    pkg = sink_on_h2(tmp_path)
 
     h2_router = f"tcp/127.0.0.1:{free_port()}"
 
@@ -208,6 +323,63 @@ def test_a_host_agent_restart_is_reconciled(system, procs, bus, tmp_path):
                    and sys_.node(s, "sink")["pid"] != old, "sink back on h2")  # fmt: skip
     assert sys_.node(st, "sink")["host"] == "h2"
     assert sys_.ctl("sink", m.Describe()).result["params"]["offset"] == 6.0
+
+
+def test_a_partition_is_one_event_and_one_log_line_without_a_reachable_measurement(
+    system, procs, bus, tmp_path
+):
+    """h2's link to the first host is cut like a pulled cable (nothing passes, nobody is
+    told) for a few seconds: the model declares no ``reachable:`` measurement, yet the cut
+    and its end are each one adaptation event (``host_unreachable``, ``host_reachable``)
+    and one line in the Context Monitor leader's log, whichever replica leads; h2's sink
+    runs on under its own agent (same pid, no restart)."""
+    from rra_agent.bus.config import BusConfig
+    from rra_agent.scenario.link import Link
+
+    pkg = sink_on_h2(tmp_path)
+    link = Link(("127.0.0.1", int(bus.connect[0].rsplit(":", 1)[1])))
+    link.start()
+    try:
+        procs.python(
+            "rra_agent", "agent", "--system", "relay_system", "--host", "h2",
+            "--package", str(pkg), "--log-dir", str(tmp_path / "h2-logs"),
+            "--connect", link.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}",
+            "--no-multicast", name="agent-h2",
+        )  # fmt: skip
+        sys_ = system(pkg)
+        events = Events(sys_.client)
+        st = sys_.wait(lambda s: sys_.node(s, "sink")["state"] == "RUNNING"
+                       and leaders_on(sys_), "sink running on h2, the engines led")  # fmt: skip
+        sink = sys_.node(st, "sink")["pid"]
+        t0 = time.time()
+        link.cut()
+        gone = wait_until(lambda: events.adaptation("host_unreachable", t0), 15, "the event")
+        detected = gone[0].stamp - t0
+        budget = BusConfig().budget_ms / 1000.0
+        assert budget * 0.9 <= detected < 6.0, f"seen {detected:.2f} s after the cut"
+        assert "host h2 is unreachable" in gone[0].message
+        link.restore()
+        back = wait_until(lambda: events.adaptation("host_reachable", t0), 30, "the return")
+        assert "host h2 is reachable again" in back[0].message
+        # Converged: h2's sink answers through the restored link, as before the cut.
+        st = sys_.wait(lambda s: s["engine"]["hosts"].get("h2") is True
+                       and sys_.node(s, "sink")["state"] == "RUNNING", "h2 back")  # fmt: skip
+        assert sys_.node(st, "sink")["pid"] == sink and not sys_.node(st, "sink").get("restarts")
+        # Exactly one event per transition, though two monitor replicas saw both.
+        assert len(events.adaptation("host_unreachable", t0)) == 1
+        assert len(events.adaptation("host_reachable", t0)) == 1
+        logs = "".join(
+            (sys_.run_dir / "logs" / f"monitor-{r}.log").read_text(errors="replace") for r in "ab"
+        )
+        assert logs.count("host h2 is unreachable") == 1, logs
+        assert logs.count("host h2 is reachable again") == 1, logs
+    finally:
+        link.close()
+
+
+def leaders_on(sys_: System) -> bool:
+    """Every engine role answers with a leader."""
+    return all((engine_status(sys_, role) or {}).get("leader") for role in ENGINE_ROLES)
 
 
 def test_leaders_killed_and_frozen_in_a_loop_never_act_together(system):
@@ -310,7 +482,7 @@ def test_forged_and_invalid_selections_are_refused_and_bounded(system):
     sys_ = system()
     sel = m.Codec[m.SelectionMessage](m.SelectionMessage)
     adaptation = wait_until(lambda: engine_status(sys_, "adaptation"), 15, "the adaptation leader")
-    real = m.Fence(epoch=adaptation["leader"][0], leader=adaptation["leader"][1])
+    real = m.Fence.of(tuple(adaptation["leader"]))  # type: ignore[arg-type]
 
     def put(features: list[str], cv: dict, fence: m.Fence | None) -> None:
         sys_.client.session.put(K.selection, sel.encode(m.Selection(

@@ -289,17 +289,24 @@ def test_start_and_stop_are_idempotent_and_names_are_checked(agent, procs):
 
 def test_older_leaders_are_fenced_off_at_the_agent_and_its_nodes(agent, procs):
     _, client, watch = agent
-    new, old = m.Fence(epoch=5, leader="b"), m.Fence(epoch=4, leader="a")
+    new, old = m.Fence(epoch=5, leader="b", instance="1f"), m.Fence(epoch=4, leader="a")
+    # The same replica name and epoch in another process (a second system, the other side
+    # of a partition): another term, refused once ``new`` is accepted.
+    twin = m.Fence(epoch=5, leader="b", instance="7a")
     claimed = ok(client.host("h1", m.Claim(fence=new)))
-    assert claimed == {"accepted": True, "fence": [5, "b"]}
+    assert claimed == {"accepted": True, "fence": [5, "b", "1f"]}
     stale = client.host("h1", m.StartNode(spec=relay_spec(), fence=old))
     assert isinstance(stale, m.Err) and stale.code == "stale_fence"
+    twin_start = client.host("h1", m.StartNode(spec=relay_spec(), fence=twin))
+    assert isinstance(twin_start, m.Err) and twin_start.code == "stale_fence"
     start(client, watch, procs, relay_spec())  # unfenced: an operator's tool
     refused = client.node("relay", m.SetParams(params={"offset": 2.0}, fence=old))
     assert isinstance(refused, m.Err) and refused.code == "stale_fence"
     ok(client.node("relay", m.SetParams(params={"offset": 2.0}, fence=new)))
-    assert ok(client.host("h1", m.Stats()))["rejected"] == 1  # type: ignore[index]
-    assert ok(client.node("relay", m.Stats()))["rejected"] == 1  # type: ignore[index]
+    twin_set = client.node("relay", m.SetParams(params={"offset": 3.0}, fence=twin))
+    assert isinstance(twin_set, m.Err) and twin_set.code == "stale_fence"
+    assert ok(client.host("h1", m.Stats()))["rejected"] == 2  # type: ignore[index]
+    assert ok(client.node("relay", m.Stats()))["rejected"] == 2  # type: ignore[index]
 
 
 def test_parameters_are_checked_against_their_declaration(agent, procs):
@@ -663,7 +670,8 @@ def test_a_leader_refused_as_superseded_steps_down(agent, procs):
     try:
         election.start()
         assert election.leading and changes == [True]  # alone on the bus: it claims
-        election.claims["resolution-a"] = election.term[0]  # type: ignore[index]  # the winner's claim, seen
+        # the winner's claim, seen
+        election.claims[("resolution-a", "1f")] = election.term[0]  # type: ignore[index]
         election.step_down()
         assert not election.leading and changes == [True, False]
     finally:

@@ -121,9 +121,9 @@ def test_the_leading_adaptation_engine_drops_other_selections_without_waking_its
     fence = m.Fence(epoch=9, leader="mallory")
     sel = m.Selection(seq=1, stamp=1.0, deployment=[], features=["A"], cv={}, fence=fence)
     sample = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: msgspec.msgpack.encode(sel)))
-    proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
+    proc.election = SimpleNamespace(leading=True, instance="1f")  # type: ignore[assignment]
     proc._on_selection(sample)  # type: ignore[arg-type]
     assert proc.loop.inbox.empty()
-    proc.election = SimpleNamespace(leading=False)  # type: ignore[assignment]
+    proc.election = SimpleNamespace(leading=False, instance="1f")  # type: ignore[assignment]
     proc._on_selection(sample)  # type: ignore[arg-type]
     assert proc.loop.inbox.qsize() == 1  # a standby checks it against its leader

@@ -20,7 +20,17 @@ Resolution Engine) is the state that must survive. Faults, one row each:
    publishes the selection in force (no default selection, no swap);
    in both, the killed replica comes back as a standby and must not take the lead back;
 6. ``kill -9`` of the host agent's fork server: no node dies, a ``fork_server`` event is
-   published, and the next node restart (``kill -9`` of sink) still works.
+   published, and the next node restart (``kill -9`` of sink) still works;
+7. a second ``rra up`` of the same package, linked to the first's router: refused in one
+   line, nothing started, the first system undisturbed (same pids, same leader terms);
+8. ``SIGSTOP`` of the Run-time Resolution Engine leader for longer than the budget: the
+   standby takes over after the lease (not before the budget), the resumed one follows;
+9. a partition: host h2 (the sink's) cut from the hub like a pulled cable for 3 s, with no
+   ``reachable:`` measurement in the model: one ``host_unreachable`` and one
+   ``host_reachable`` event, the sink keeps its process.
+
+The systems run with the shipped bus configuration (the 2 s lease: the failure-detection
+budget is 1.75 s, `BusConfig.budget_ms`); row 3's stall (1 s) must move no leadership.
 
 Figures are medians and p99 (nearest rank) over ``--runs`` repetitions, in milliseconds
 after the injection. They come from time stamps (the host agents' and engines' own, or the
@@ -87,6 +97,11 @@ OFFSET = 4.0
 REUSE = 5
 #: Length of the hub's stall (fault 3).
 STALL = 1.0
+#: The failure-detection budget and the lease it comes from (the shipped bus, seconds).
+BUDGET = BusConfig().budget_ms / 1000.0
+LEASE = BusConfig().lease_ms / 1000.0
+#: How long h2's cable stays out (the partition row).
+CUT = 3.0
 #: Processes of one relay system: six engine replicas and three nodes.
 PROCESSES = 9
 ROLES = ("resolution", "adaptation", "monitor")
@@ -208,7 +223,7 @@ class Watch:
             session.declare_subscriber(K.selection, self._on_selection),
             *(
                 lv.declare_subscriber(
-                    f"{K.lead(role)}/*/*", lambda s, r=role: self._on_claim(r, s), history=True
+                    f"{K.lead(role)}/**", lambda s, r=role: self._on_claim(r, s), history=True
                 )
                 for role in ROLES
             ),
@@ -239,8 +254,8 @@ class Watch:
 
     def _on_claim(self, role: str, sample: zenoh.Sample) -> None:
         at = time.time()
-        parts = str(sample.key_expr).rsplit("/", 2)[-2:]
-        if len(parts) != 2 or not parts[0].isdigit():
+        parts = str(sample.key_expr).removeprefix(K.lead(role) + "/").split("/")
+        if len(parts) != 3 or not parts[0].isdigit():  # <epoch>/<replica>/<instance>
             return
         epoch, replica = int(parts[0]), parts[1]
         alive = sample.kind == zenoh.SampleKind.PUT
@@ -323,23 +338,24 @@ def running(st: dict) -> dict[str, int]:
 
 # ---- a system under test ------------------------------------------------------------------
 class System:
-    """``rra up`` of the relay system, in a process group of its own, and a session on it."""
+    """``rra up`` of the relay system, in a process group of its own, and a session on it
+    (the shipped bus configuration: its lease is the failure-detection budget measured)."""
 
-    def __init__(self, work: Path, label: str) -> None:
+    def __init__(self, work: Path, label: str, package: Path = PACKAGE) -> None:
         self.run_dir = work / label
         self.run_dir.mkdir(parents=True)
-        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.endpoint = endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.before_up()
         self.proc = spawn(
-            [sys.executable, "-m", "rra_agent", "up", str(PACKAGE), "--run-dir",
-             str(self.run_dir), "-q", "--connect", endpoint, "--no-multicast",
-             "--lease-ms", "500"],
+            [sys.executable, "-m", "rra_agent", "up", str(package), "--run-dir",
+             str(self.run_dir), "-q", "--connect", endpoint, "--no-multicast"],
             self.run_dir / "up.log",
         )  # fmt: skip
         self.client: BusClient | None = None
         self.watch: Watch | None = None
         self.exit_code: int | None = None
         try:
-            bus = BusConfig(connect=[endpoint], multicast=False, lease_ms=500)
+            bus = BusConfig(connect=[endpoint], multicast=False)
             self.client = until(lambda: self._connect(bus), 90.0, f"the hub on {endpoint}", 0.1)
             self.watch = Watch(self.client)
             self.wait(
@@ -352,6 +368,9 @@ class System:
         except BaseException:
             self.stop()
             raise
+
+    def before_up(self) -> None:
+        """What runs before ``rra up`` (another host's agent, `TwoHosts`)."""
 
     def _connect(self, bus: BusConfig) -> BusClient | None:
         """A session on the hub; None while it does not listen yet (a loaded machine)."""
@@ -398,7 +417,14 @@ class System:
         assert self.client is not None
         client = self.client
         until(lambda: node in {n for _, n in client.alive()}, 10, f"{node}'s token", 0.05)
-        reply = client.node(node, m.Describe())
+
+        def describe() -> m.Reply | None:
+            try:
+                return client.node(node, m.Describe())
+            except NoReply:  # its token can reach us before its control endpoint's route
+                return None  # (a node of another host, just reconnected)
+
+        reply = until(describe, 15, f"{node} answering", 0.1)
         return reply.result["params"].get(name) if isinstance(reply, m.Ok) else None
 
     def engine(self, name: str) -> dict | None:
@@ -409,6 +435,14 @@ class System:
         except NoReply:
             return None
         return reply.result if isinstance(reply, m.Ok) and reply.result else None
+
+    def leader_answers(self, role: str, replica: str) -> dict | None:
+        """The status of ``role`` once ``replica`` answers for it, else None."""
+        status = self.engine(role)
+        return status if status and status["leader"][1:2] == [replica] else None
+
+    def node_pid(self, st: dict, name: str) -> int | None:
+        return next((n["pid"] for n in st["nodes"] if n["node"] == name), None)
 
     def standby_ready(self, st: dict, role: str) -> tuple[list, int] | None:
         """(leader term, leader pid) once both replicas run and the standby follows the
@@ -568,7 +602,8 @@ def stall_hub(sys_: System, _rep: int) -> Sample:
     now = leaders()
     moved = {r: (terms[r], now[r]) for r in ROLES if now[r] != terms[r]}
     s.extra["leader changes"] = len(moved)
-    s.notes += [f"{r} leader {a} -> {b}" for r, (a, b) in moved.items()]
+    s.checks["no leadership moved"] = not moved
+    s.notes += [f"{r} leader {a[:2]} -> {b[:2]}" for r, (a, b) in moved.items()]
     # The engine logs its takeovers itself (this session was cut off during the stall too).
     s.notes += [
         f"{e.source} took over at +{(e.stamp - t0) * 1e3:.0f} ms"
@@ -591,7 +626,7 @@ def kill_resolution_leader(sys_: System, _rep: int) -> Sample:
 
     st = sys_.wait(check, "a resolution standby following the leader")
     assert ready is not None
-    (epoch, leader), pid = ready
+    (epoch, leader, *_), pid = ready
     selection, overrides = st["engine"]["selection"], st["engine"]["overrides"]
     t0 = time.time()
     os.kill(pid, signal.SIGKILL)
@@ -606,7 +641,7 @@ def kill_resolution_leader(sys_: System, _rep: int) -> Sample:
     if gone is not None:
         s.extra["old claim gone"] = gone.at - t0
     st = sys_.wait(
-        lambda s: s["engine"] is not None and s["engine"]["leader"][1:] == [claim.replica],
+        lambda s: s["engine"] is not None and s["engine"]["leader"][1] == claim.replica,
         "the new leader answering",
     )
     kept = st["engine"]["selection"] == selection and st["engine"]["overrides"] == overrides
@@ -642,7 +677,7 @@ def settle(sys_: System, role: str, killed: str, epoch: int, claim: Claim, s: Sa
         return ready is not None
 
     sys_.wait(check, f"{killed} following as a standby")
-    s.checks["no flap back"] = term == [claim.epoch, claim.replica]
+    s.checks["no flap back"] = term[:2] == [claim.epoch, claim.replica]
     s.notes.append(
         f"killed {killed} (epoch {epoch}), {claim.replica} took over (epoch {claim.epoch})"
         + ("" if s.checks["no flap back"] else f", then {term[1]} took it (epoch {term[0]})")
@@ -667,7 +702,7 @@ def kill_adaptation_leader(sys_: System, _rep: int) -> Sample:
 
     st = sys_.wait(check, "an adaptation standby following the leader")
     assert ready is not None
-    (epoch, leader), pid = ready
+    (epoch, leader, *_), pid = ready
     status = sys_.engine("adaptation")
     assert status is not None
     selection, running_before = status["selection"], sorted(st["engine"]["running"])
@@ -681,8 +716,10 @@ def kill_adaptation_leader(sys_: System, _rep: int) -> Sample:
     gone = watch.claim_gone("adaptation", epoch, leader, t0)
     if gone is not None:
         s.extra["old claim gone"] = gone.at - t0
-    now = sys_.engine("adaptation")
-    s.checks["Status names the new leader"] = bool(now) and now["leader"][1:] == [claim.replica]
+    # The role's endpoint answers for the new leader once it has taken over (a Status read
+    # at once may still reach nobody, or the old term: not a lost state).
+    now = until(lambda: sys_.leader_answers("adaptation", claim.replica), 10,
+                "the new adaptation leader answering")  # fmt: skip
     back = until(lambda: watch.running_again(leader, t0, pid), 30, f"{leader} running again")
     s.extra["killed replica back"] = back.stamp - t0
     st = sys_.gather()
@@ -695,18 +732,22 @@ def kill_adaptation_leader(sys_: System, _rep: int) -> Sample:
         and not swaps
     )
     s.notes += [f"swap after the takeover: {e.plan}" for e in swaps]
+    if sorted(first.features) != selection or now["selection"] != selection:
+        s.notes.append(f"selection {selection} -> {sorted(first.features)} / {now['selection']}")
     s.restarted = watch.started(t0, time.time())
     settle(sys_, "adaptation", leader, epoch, claim, s)
     return s
 
 
-def zygotes(sys_: System, nodes: set[int]) -> list[int]:
-    """The fork servers of ``rra up``'s host agent: children running the fork server's
-    module that are not nodes (forked nodes show the same command line)."""
-    return [
-        pid for pid in children(sys_.pid)
-        if "rra_agent.host.forkserver" in cmdline(pid) and pid not in nodes
-    ]  # fmt: skip
+def fork_server(sys_: System) -> int | None:
+    """The pid of ``rra up``'s fork server, as its host agent answers a Ping (a process
+    table cannot tell it from its spare, a fork of it with the same command line)."""
+    assert sys_.client is not None
+    try:
+        reply = sys_.client.host("local", m.Ping())
+    except NoReply:
+        return None
+    return reply.result.get("fork_server") if isinstance(reply, m.Ok) else None
 
 
 def kill_fork_server(sys_: System, _rep: int) -> Sample:
@@ -714,10 +755,7 @@ def kill_fork_server(sys_: System, _rep: int) -> Sample:
     watch = sys_.watch
     assert watch is not None
     before = running(st)
-    found = zygotes(sys_, {n["pid"] for n in st["nodes"] if n.get("pid")})
-    if len(found) != 1:
-        raise Fault(f"expected one fork server among rra up's children, found {found}")
-    (zygote,) = found
+    zygote = until(lambda: fork_server(sys_), 10, "the fork server's pid from its host agent")
     t0 = time.time()
     os.kill(zygote, signal.SIGKILL)
     ev = until(lambda: next(iter(watch.adaptation_events("fork_server", t0)), None), 10,
@@ -733,9 +771,175 @@ def kill_fork_server(sys_: System, _rep: int) -> Sample:
     os.kill(pid, signal.SIGKILL)
     back = until(lambda: watch.running_again("sink", t1, pid), 15, "sink running again")
     s.recovered = back.stamp - t1
-    st = sys_.gather()
-    again = zygotes(sys_, {n["pid"] for n in st["nodes"] if n.get("pid")})
-    s.checks["a new fork server"] = len(again) == 1 and again[0] != zygote
+    again = fork_server(sys_)
+    s.checks["a new fork server"] = again is not None and again != zygote
+    s.state_ok = sys_.param("sink", "offset") == OFFSET
+    s.restarted = watch.started(t0, time.time())
+    return s
+
+
+# ---- one system, one set of engines; the budget; partitions --------------------------------
+def terms_and_pids(sys_: System) -> tuple[dict[str, tuple | None], dict[str, int]]:
+    """Every role's leader term and the nine processes, once both are settled."""
+    out: list = []
+
+    def check(st: dict) -> bool:
+        terms = {role: tuple(e["leader"]) if (e := sys_.engine(role)) else None for role in ROLES}
+        out[:] = [terms, running(st)]
+        return len(running(st)) == PROCESSES and all(terms.values())
+
+    sys_.wait(check, "nine processes running, every role led")
+    return out[0], out[1]
+
+
+def second_up(sys_: System, rep: int) -> Sample:
+    """A second ``rra up`` of the same package, its router linked to the first one's."""
+    watch = sys_.watch
+    assert watch is not None
+    terms, before = terms_and_pids(sys_)
+    run_dir = sys_.run_dir.parent / f"{sys_.run_dir.name}-second-{rep}"
+    log = sys_.run_dir / f"second-up-{rep}.log"
+    t0, wall = time.monotonic(), time.time()
+    proc = spawn(
+        [sys.executable, "-m", "rra_agent", "up", str(PACKAGE), "--run-dir", str(run_dir),
+         "--connect", f"tcp/127.0.0.1:{free_port()}", "--connect", sys_.endpoint,
+         "--no-multicast"],
+        log,
+    )  # fmt: skip
+    try:
+        code: int | None = proc.wait(60)
+    except subprocess.TimeoutExpired:
+        code = None
+    took = time.monotonic() - t0
+    end_group(proc, grace=15.0)
+    lines = log.read_text(errors="replace").strip().splitlines()
+    s = Sample(detected=took)
+    s.checks["refused (exit status not 0)"] = code not in (0, None)
+    s.checks["one line"] = len(lines) == 1 and "already runs" in lines[0]
+    s.checks["nothing started"] = not run_dir.exists()
+    after_terms, after = terms_and_pids(sys_)
+    s.checks["first system undisturbed"] = after_terms == terms and after == before
+    s.state_ok = sys_.param("sink", "offset") == OFFSET
+    s.restarted = watch.started(wall, time.time())
+    if lines:
+        s.notes.append(lines[0][:120] + ("..." if len(lines[0]) > 120 else ""))
+    return s
+
+
+def freeze_leader(sys_: System, _rep: int) -> Sample:
+    """SIGSTOP of the Resolution Engine leader for longer than the budget, then SIGCONT."""
+    watch = sys_.watch
+    assert watch is not None
+    ready = None
+
+    def check(st: dict) -> bool:
+        nonlocal ready
+        ready = sys_.standby_ready(st, "resolution")
+        return ready is not None
+
+    st = sys_.wait(check, "a resolution standby following the leader")
+    assert ready is not None
+    (epoch, leader, *_), pid = ready
+    selection, overrides = st["engine"]["selection"], st["engine"]["overrides"]
+    t0 = time.time()
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        claim = until(lambda: watch.new_claim("resolution", epoch), 15, "a new resolution leader")
+        took = until(lambda: next(iter(watch.adaptation_events("takeover", t0)), None), 10,
+                     "its takeover")  # fmt: skip
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    s = Sample(detected=claim.at - t0, recovered=took.stamp - t0)
+    s.checks["not before the budget"] = claim.at - t0 >= BUDGET * 0.98
+    st = sys_.wait(lambda st: sys_.standby_ready(st, "resolution") is not None
+                   and st["engine"]["leader"][1] == claim.replica,
+                   f"the resumed {leader} following {claim.replica}")  # fmt: skip
+    s.checks["the resumed one follows"] = sys_.node_pid(st, leader) == pid
+    s.state_ok = st["engine"]["selection"] == selection and st["engine"]["overrides"] == overrides
+    s.restarted = watch.started(t0, time.time())
+    s.notes.append(f"froze {leader} (epoch {epoch}), {claim.replica} took over "
+                   f"(epoch {claim.epoch})")  # fmt: skip
+    return s
+
+
+def two_host_package(work: Path) -> Path:
+    """The relay system with its sink on a second host, h2 (no ``reachable:`` measurement)."""
+    import yaml
+
+    pkg = work / "relay_two_hosts"
+    if not pkg.exists():
+        shutil.copytree(PACKAGE, pkg, ignore=shutil.ignore_patterns("__pycache__"))
+        model = yaml.safe_load((pkg / "system.yaml").read_text())
+        model["hosts"] = [{"name": "local"}, {"name": "h2"}]
+        for c in model["components"]:
+            c["host"] = "h2" if c["name"] == "sink" else "local"
+        (pkg / "system.yaml").write_text(yaml.safe_dump(model, sort_keys=False))
+    return pkg
+
+
+class TwoHosts(System):
+    """The relay system with its sink on host h2, whose agent's router joins the hub through
+    a cuttable relay (`rra_agent.scenario.link`: a pulled cable, no FIN or RST)."""
+
+    def __init__(self, work: Path, label: str) -> None:
+        from rra_agent.scenario.link import Link
+
+        self.link: Link | None = None
+        self.agent: subprocess.Popen[bytes] | None = None
+        self.package = two_host_package(work)
+        super().__init__(work, label, self.package)
+
+    def before_up(self) -> None:
+        from rra_agent.scenario.link import Link
+
+        self.link = Link(("127.0.0.1", int(self.endpoint.rsplit(":", 1)[1])))
+        self.link.start()
+        self.agent = spawn(
+            [sys.executable, "-m", "rra_agent", "agent", "--host", "h2", "--package",
+             str(self.package), "--log-dir", str(self.run_dir / "h2"), "--connect",
+             self.link.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}", "--no-multicast",
+             "-q"],
+            self.run_dir / "agent-h2.log",
+        )  # fmt: skip
+
+    def stop(self) -> None:
+        super().stop()
+        if self.agent is not None:
+            end_group(self.agent)
+            self.agent = None
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+
+
+def partition(sys_: System, _rep: int) -> Sample:
+    """h2's link cut for `CUT` seconds, then restored."""
+    assert isinstance(sys_, TwoHosts) and sys_.link is not None
+    watch = sys_.watch
+    assert watch is not None
+    st = sys_.wait(lambda s: len(running(s)) == PROCESSES and s["engine"]["hosts"].get("h2"),
+                   "nine processes running, h2 reachable")  # fmt: skip
+    sink = running(st)["sink"]
+    t0 = time.time()
+    sys_.link.cut()
+    try:
+        gone = until(lambda: next(iter(watch.adaptation_events("host_unreachable", t0)), None),
+                     15, "the host_unreachable event")  # fmt: skip
+        # The fault: the cable stays out this long (the event is seen before).
+        time.sleep(max(0.0, t0 + CUT - time.time()))
+    finally:
+        t1 = time.time()
+        sys_.link.restore()
+    back = until(lambda: next(iter(watch.adaptation_events("host_reachable", t1)), None), 15,
+                 "the host_reachable event")  # fmt: skip
+    st = sys_.wait(lambda s: s["engine"]["hosts"].get("h2") is True and "sink" in running(s),
+                   "h2 back, its sink running")  # fmt: skip
+    s = Sample(detected=gone.stamp - t0, recovered=back.stamp - t1)
+    s.checks["one event per transition"] = (
+        len(watch.adaptation_events("host_unreachable", t0)) == 1
+        and len(watch.adaptation_events("host_reachable", t0)) == 1
+    )
+    s.checks["sink kept its process"] = running(st)["sink"] == sink
     s.state_ok = sys_.param("sink", "offset") == OFFSET
     s.restarted = watch.started(t0, time.time())
     return s
@@ -751,6 +955,8 @@ class Row:
     #: Goals in milliseconds (None: not applicable).
     detect_goal: float | None
     recover_goal: float | None
+    #: The system it runs on.
+    kind: type[System] = System
 
 
 ROWS = (
@@ -763,6 +969,11 @@ ROWS = (
     Row("kill-adaptation", "kill -9 adaptation leader", kill_adaptation_leader, False,
         100.0, 100.0),
     Row("kill-forkserver", "kill -9 fork server", kill_fork_server, True, 20.0, 1000.0),
+    Row("second-up", "second rra up, linked", second_up, False, 5000.0, None),
+    Row("freeze-leader", f"SIGSTOP resolution leader > {BUDGET:g} s", freeze_leader, False,
+        LEASE * 1e3 + 250.0, LEASE * 1e3 + 250.0),
+    Row("partition", f"host h2 cut {CUT:g} s", partition, False, LEASE * 1e3 + 500.0, 2000.0,
+        TwoHosts),
 )  # fmt: skip
 
 
@@ -788,7 +999,7 @@ def run_row(
                     sys_ = None
                 if sys_ is None:
                     started = time.monotonic()
-                    sys_ = System(work, f"{row.key}-{rep}")
+                    sys_ = row.kind(work, f"{row.key}-{rep}")
                     used = 0
                     say(f"  {row.key} run {rep + 1}/{runs}: system up in "
                         f"{time.monotonic() - started:.1f} s")  # fmt: skip
@@ -864,7 +1075,9 @@ def table_row(row: Row, samples: list[Sample]) -> list[str]:
         problems.append("state")
     restarted = restarted_cell(good)
     if row.key == "stall-hub":
-        restarted = f"{restarted} ({sum(len(s.restarted) for s in good)} restarts)"
+        moves = sum(int(s.extra.get("leader changes", 0)) for s in good)
+        restarts = sum(len(s.restarted) for s in good)
+        restarted = f"{restarted} ({restarts} restarts, {moves} leadership moves)"
     state = f"{'yes' if good and kept == len(good) else 'NO'} ({kept}/{len(samples)})"
     verdict = "PASS" if not problems else "FAIL: " + ", ".join(problems)
     return [
@@ -895,7 +1108,8 @@ FOOTNOTES = {
     "freeze-node": "detected = NodeState BACKOFF 'frozen ... killed' (stamp) - SIGSTOP; "
     f"recovered = RUNNING, new pid (stamp); deadline {DEADLINE:g} s + probe {PROBE:g} s",
     "stall-hub": "nothing to restart: NodeStates watched for deadline + probe after SIGCONT; "
-    "'bus back' is polled (rra status answers again)",
+    f"'bus back' is polled (rra status answers again); a leadership move (any role's leader "
+    f"term changed) fails the row: the stall is shorter than the budget ({BUDGET:g} s)",
     "kill-resolution": "detected = the standby's leader token reaching this session (arrival "
     "time); recovered = its 'takeover' event (stamp: hosts fenced, model adopted); the 100 ms "
     "takeover goal for both; set -> swap = 'adaptation' event (stamp) - set source value",
@@ -904,7 +1118,22 @@ FOOTNOTES = {
     "precede 'detected'); the 100 ms takeover goal for both; state = same selection, no swap",
     "kill-forkserver": "detected = 'fork_server' event (stamp) - kill; recovered = the next "
     "restart: kill -9 sink -> RUNNING (stamp), through a new fork server; goals those of "
-    "row 1 (the fork server is a reaped child; a node restart)",
+    "row 1 (the fork server is a reaped child; a node restart); the fork server's pid is its "
+    "host agent's answer to a Ping",
+    "second-up": "a second `rra up` of the package, its hub elsewhere, its router linked to "
+    "the first's (--connect); detected = its start -> its exit, refused in one line (it waits "
+    "for its link and for the other routers' tokens: 0.1-0.5 s); the first system: same pids, same "
+    "leader terms",
+    "freeze-leader": f"SIGSTOP of the resolution leader until its successor took over, then "
+    f"SIGCONT; detected = the successor's leader token reaching this session, recovered = its "
+    f"'takeover' event (stamp); goal: the lease ({LEASE:g} s) + 250 ms, and not before the "
+    f"budget ({BUDGET:g} s: a shorter stall is no failure)",
+    "partition": f"h2's router joins the hub through a relay that is cut like a pulled cable "
+    f"(rra_agent.scenario.link: nothing passes, no FIN or RST) for {CUT:g} s; no network "
+    f"namespace needed (tests/test_netns.py cuts a veth); detected = 'host_unreachable' "
+    f"event (stamp) - cut, recovered = 'host_reachable' (stamp) - restore; goals: the lease "
+    f"+ 500 ms, the routers' retry (<= 1 s) + 1 s; the model declares no reachable: "
+    f"measurement",
 }
 
 
@@ -970,7 +1199,8 @@ def main() -> int:
                 print(f"    run {n}: {'; '.join(s.notes)}")
     print(
         "state = the operator's sink.offset = 4.0 (set through the resolution engine) in the "
-        "node after the fault (rows 1-3, 6), the new leader's model (4) or selection (5)"
+        "node after the fault (rows 1-3, 6, 7, 9), the new leader's model (4, 8) or "
+        "selection (5)"
     )
     for note in shutdowns:
         print(f"note: {note}")

@@ -14,7 +14,9 @@
                                            role (its leader answers) or a replica
     rra/<system>/state/<role>              an engine leader's published state
     rra/<system>/member/<role>/<replica>   liveliness token of each engine replica
-    rra/<system>/lead/<role>/<epoch>/<replica>  liveliness token of the role's leader
+    rra/<system>/lead/<role>/<epoch>/<replica>/<instance>
+                                           liveliness token of the role's leader
+                                           (<instance>: its session's Zenoh id)
     rra/<system>/inject/**                 scenario injections (faults, context changes)
 """
 
@@ -105,7 +107,8 @@ class Keys:
         return f"{self.prefix}/member/{check_chunk(role, 'engine role')}/{replica}"
 
     def lead(self, role: str) -> str:
-        """Prefix of the leader tokens of a role: ``.../lead/<role>/<epoch>/<replica>``."""
+        """Prefix of the leader tokens of a role:
+        ``.../lead/<role>/<epoch>/<replica>/<instance>``."""
         return f"{self.prefix}/lead/{check_chunk(role, 'engine role')}"
 
     def inject(self, what: str) -> str:

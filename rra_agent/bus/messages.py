@@ -47,10 +47,23 @@ class Msg(
 
 class Fence(msgspec.Struct, kw_only=True, forbid_unknown_fields=True, frozen=True):
     """A leader's term: ``epoch`` grows with every change of leader; at equal epochs the
-    smaller ``leader`` name wins (`rra_agent.core.election.newer`)."""
+    smaller ``leader`` name wins, then the smaller ``instance``
+    (`rra_agent.core.election.newer`)."""
 
     epoch: int
     leader: str
+    #: The leading process: its Zenoh session id, new with every process. Two processes
+    #: with one replica name (a second system on the bus, the sides of a partition) never
+    #: have the same term.
+    instance: str = ""
+
+    @property
+    def term(self) -> tuple[int, str, str]:
+        return (self.epoch, self.leader, self.instance)
+
+    @classmethod
+    def of(cls, term: tuple[int, str, str]) -> Fence:
+        return cls(epoch=term[0], leader=term[1], instance=term[2])
 
 
 # ---- context dependent measurements -------------------------------------------------------

@@ -63,9 +63,7 @@ def _ask(client: BusClient, request: m.EngineRequest, timeout: float) -> dict[st
     try:
         wait_until(
             lambda: list(
-                client.session.liveliness().get(
-                    f"{client.keys.lead('adaptation')}/*/*", timeout=0.5
-                )
+                client.session.liveliness().get(f"{client.keys.lead('adaptation')}/**", timeout=0.5)
             ),
             timeout,
             "the adaptation engine",

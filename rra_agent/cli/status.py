@@ -57,7 +57,7 @@ def configure_status(p: argparse.ArgumentParser) -> None:
 
 
 def _leader_token(client: BusClient, role: str) -> str:
-    return f"{client.keys.lead(role)}/*/*"
+    return f"{client.keys.lead(role)}/**"
 
 
 def wait_for_leader(client: BusClient, timeout: float) -> None:

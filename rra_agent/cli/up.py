@@ -17,6 +17,10 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Any
+
+import msgspec
+import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
@@ -120,6 +124,22 @@ def engine_specs(
     return specs
 
 
+def print_partitions(session: zenoh.Session, key: str) -> zenoh.Subscriber[None]:
+    """Print each ``host_unreachable`` / ``host_reachable`` event (the Context Monitor
+    leader's, one per transition) on this console, as node-state changes are."""
+    codec = m.Codec[m.EventMessage](m.EventMessage)
+
+    def on_event(sample: zenoh.Sample) -> None:
+        try:
+            ev = codec.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        if isinstance(ev, m.AdaptationEvent) and ev.kind in ("host_unreachable", "host_reachable"):
+            print(f"[{time.strftime('%H:%M:%S')}] {ev.message}", flush=True)
+
+    return session.declare_subscriber(key, on_event)
+
+
 def run(args: argparse.Namespace) -> int:
     names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
     dep = deploy(args.package, names)
@@ -175,15 +195,19 @@ def _run(
         hub=True,
         catalog=catalog,
         data_topics=topic_limits(dep.package.system),
+        engines=True,
         **security(args, dep, args.host),
     )
     agent.observers.append(state_printer(quiet=args.quiet))
+    keep: list[Any] = []  # declared entities live as long as they are referenced
 
     def start_engines() -> None:
         started.append(True)
         trim_heap()  # what loading the package freed
         for spec in specs:
             agent.handle(m.StartNode(spec=spec))
+        if not args.quiet and agent.session is not None:
+            keep.append(print_partitions(agent.session, agent.keys.events))
         if not args.quiet:
             print(
                 f"rra up: system {dep.system!r} ({', '.join(sorted(dep.selection))}) on host "

@@ -135,8 +135,10 @@ class AdaptationProcess(EngineProcess):
             msg = _SEL.decode(raw)
         except (msgspec.DecodeError, msgspec.ValidationError):
             return
-        if not isinstance(msg, m.Selection) or msg.fence is None or msg.fence.leader == self.name:
+        if not isinstance(msg, m.Selection) or msg.fence is None:
             return
+        if self.election is not None and msg.fence.instance == self.election.instance:
+            return  # its own
         # The leader follows nobody: it drops the others' selections (forged ones, or a
         # deposed leader's) here rather than waking its main loop for each, which would
         # keep the next measurement from being evaluated inline. A replica stepping down
@@ -237,7 +239,7 @@ class AdaptationProcess(EngineProcess):
         assert msg.fence is not None
         if self.election is None or self.leading:
             return
-        if (msg.fence.epoch, msg.fence.leader) != self.election.leader:
+        if msg.fence.term != self.election.leader:
             self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
             return
         self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")

@@ -2,8 +2,10 @@
 `rra_agent.core.election`).
 
 Every replica declares ``rra/<system>/member/<role>/<replica>``; the leader also declares
-``rra/<system>/lead/<role>/<epoch>/<replica>``. Each replica follows both with liveliness
-subscribers and decides on its main loop:
+``rra/<system>/lead/<role>/<epoch>/<replica>/<instance>``, where the instance is its
+session's Zenoh id (so two processes of one replica name are two claims, see
+`rra_agent.core.election`). Each replica follows both with liveliness subscribers and
+decides on its main loop:
 
 - no live claim and it is the first live member by name (or nobody has claimed for
   ``claim_after`` seconds): claim, with an epoch above every epoch seen;
@@ -12,7 +14,9 @@ subscribers and decides on its main loop:
   above it.
 
 A leader that dies (kill -9) loses its tokens when its link to the router closes, so the
-next replica claims within milliseconds; a frozen one loses them at the transport lease.
+next replica claims within milliseconds; a frozen one loses them at the transport lease
+(`rra_agent.bus.config`: a silence shorter than the failure-detection budget, a stall of
+the router included, loses nothing).
 When the frozen one resumes, its session re-declares its old claim, which a newer epoch
 beats: it steps down. The fence (`fence`) it put on its requests is refused by every
 receiver that has seen its successor's.
@@ -56,9 +60,11 @@ class Election:
         self.on_change = on_change
         self.claim_after = claim_after
         self.clock = clock
+        #: This process: its session's Zenoh id (a replica name may run twice on the bus).
+        self.instance = str(session.zid())
         self.members: set[str] = set()
-        #: Live claims: replica -> epoch.
-        self.claims: dict[str, int] = {}
+        #: Live claims: (replica, instance) -> epoch.
+        self.claims: dict[tuple[str, str], int] = {}
         self.max_epoch = 0
         self.term: Term | None = None
         self._claim: Any = None
@@ -84,11 +90,15 @@ class Election:
 
     @property
     def fence(self) -> m.Fence | None:
-        return None if self.term is None else m.Fence(epoch=self.term[0], leader=self.term[1])
+        return None if self.term is None else m.Fence.of(self.term)
 
     @property
     def leader(self) -> Term | None:
-        return leader_of((e, r) for r, e in self.claims.items())
+        return leader_of((e, *who) for who, e in self.claims.items())
+
+    @property
+    def _mine(self) -> tuple[str, str]:
+        return (self.me, self.instance)
 
     # ---- lifecycle ---------------------------------------------------------------------
     def start(self, timeout: float = 5.0) -> None:
@@ -100,7 +110,7 @@ class Election:
         self._entities = [
             lv.declare_token(self.keys.member(self.role, self.me)),
             lv.declare_subscriber(self.keys.member(self.role, "*"), self._on_member, history=True),
-            lv.declare_subscriber(f"{self.keys.lead(self.role)}/*/*", self._on_claim, history=True),
+            lv.declare_subscriber(f"{self.keys.lead(self.role)}/**", self._on_claim, history=True),
         ]
         deadline = self.clock() + timeout
         while self.me not in self.members and self.clock() < deadline:
@@ -109,7 +119,7 @@ class Election:
                     self.members.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
             if self.me not in self.members:
                 self.loop.cycle(0.02)
-        for reply in lv.get(f"{self.keys.lead(self.role)}/*/*", timeout=1.0):
+        for reply in lv.get(f"{self.keys.lead(self.role)}/**", timeout=1.0):
             if reply.ok is not None:
                 self._claim_seen(str(reply.ok.key_expr), True)
         if self.max_epoch > 0 and not self.claims:
@@ -147,15 +157,15 @@ class Election:
         self.loop.post(update)
 
     def _claim_seen(self, key: str, alive: bool) -> None:
-        term = parse_claim(key.rsplit("/", 2)[-2:])
+        term = parse_claim(key.removeprefix(self.keys.lead(self.role) + "/").split("/"))
         if term is None:
             return
-        epoch, replica = term
+        epoch, who = term[0], term[1:]
         self.max_epoch = max(self.max_epoch, epoch)
         if alive:
-            self.claims[replica] = max(epoch, self.claims.get(replica, 0))
-        elif self.claims.get(replica) == epoch:
-            del self.claims[replica]
+            self.claims[who] = max(epoch, self.claims.get(who, 0))
+        elif self.claims.get(who) == epoch:
+            del self.claims[who]
 
     def step_down(self) -> None:
         """A receiver refused this leader's request (another leader acted first): give up
@@ -190,15 +200,14 @@ class Election:
             return
         self._check_stall()
         before = self.term
-        others = {(e, r) for r, e in self.claims.items() if r != self.me}
+        others = {(e, *who) for who, e in self.claims.items() if who != self._mine}
         if self.term is not None:
             best = leader_of([*others, self.term])
             if best != self.term:
                 self._withdraw()  # a newer claim beats ours
         if self.term is None:
-            claims = others | (
-                {(self.claims[self.me], self.me)} if self.me in self.claims else set()
-            )
+            mine = self._mine
+            claims = others | ({(self.claims[mine], *mine)} if mine in self.claims else set())
             if claims:
                 self._leaderless_since = None
             elif self._leaderless_since is None:
@@ -206,7 +215,7 @@ class Election:
             waited = self._leaderless_since is not None and (
                 self.clock() - self._leaderless_since >= self.claim_after
             )
-            stale_own = {(e, r) for e, r in claims if r == self.me}  # ours, re-declared
+            stale_own = {t for t in claims if t[1:] == mine}  # ours, re-declared
             deferred = self.clock() < self._defer_until
             if (not deferred and should_claim(self.me, self.members, claims - stale_own)) or (
                 waited and not (claims - stale_own)
@@ -219,23 +228,23 @@ class Election:
     def tick(self) -> None:
         """Called periodically: claims a lead nobody else took within ``claim_after``."""
         self._check_stall()
-        if self.term is None and not (set(self.claims) - {self.me}):
+        if self.term is None and not (set(self.claims) - {self._mine}):
             self.decide()
 
     def _claim_lead(self) -> None:
         epoch = next_epoch([self.max_epoch], self.claims.values())
         self.max_epoch = epoch
-        self.term = (epoch, self.me)
+        self.term = (epoch, self.me, self.instance)
         self._claim = self.session.liveliness().declare_token(
-            f"{self.keys.lead(self.role)}/{epoch:010d}/{self.me}"
+            f"{self.keys.lead(self.role)}/{epoch:010d}/{self.me}/{self.instance}"
         )
-        self.claims[self.me] = epoch
+        self.claims[self._mine] = epoch
 
     def _withdraw(self) -> None:
         if self._claim is not None:
             with contextlib.suppress(Exception):
                 self._claim.undeclare()
             self._claim = None
-        if self.term is not None and self.claims.get(self.me) == self.term[0]:
-            del self.claims[self.me]
+        if self.term is not None and self.claims.get(self._mine) == self.term[0]:
+            del self.claims[self._mine]
         self.term = None

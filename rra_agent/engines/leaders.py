@@ -33,12 +33,12 @@ class LeaderWatch:
         self.role = role
         self.on_change = on_change
         self._lock = threading.Lock()
-        #: Live claims (replica -> epoch) and live members of the role.
-        self.claims: dict[str, int] = {}
+        #: Live claims ((replica, instance) -> epoch) and live members (names) of the role.
+        self.claims: dict[tuple[str, str], int] = {}
         self.members: set[str] = set()
         lv = session.liveliness()
         self._entities: list[Any] = [
-            lv.declare_subscriber(f"{keys.lead(role)}/*/*", self._on_claim, history=True),
+            lv.declare_subscriber(f"{keys.lead(role)}/**", self._on_claim, history=True),
             lv.declare_subscriber(keys.member(role, "*"), self._on_member, history=True),
         ]
 
@@ -54,23 +54,23 @@ class LeaderWatch:
         claim seen (its claim token may still be on its way)."""
         if fence is None:
             return False
-        epoch, leader = (fence.epoch, fence.leader) if isinstance(fence, m.Fence) else fence
+        epoch, leader, instance = fence.term if isinstance(fence, m.Fence) else fence
         with self._lock:
-            if self.claims.get(leader) == epoch:
+            if self.claims.get((leader, instance)) == epoch:
                 return True
             newest = max(self.claims.values(), default=0)
             return leader in self.members and epoch > newest
 
     def _on_claim(self, sample: zenoh.Sample) -> None:
-        term = parse_claim(str(sample.key_expr).split("/")[-2:])
+        term = parse_claim(str(sample.key_expr).split("/")[-3:])
         if term is None:
             return
-        epoch, replica = term
+        epoch, who = term[0], term[1:]
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                self.claims[replica] = epoch
-            elif self.claims.get(replica) == epoch:
-                del self.claims[replica]
+                self.claims[who] = epoch
+            elif self.claims.get(who) == epoch:
+                del self.claims[who]
         self._changed()
 
     def _on_member(self, sample: zenoh.Sample) -> None:

@@ -17,10 +17,11 @@ computes from those (latest-value coalescing: both synchronisation policies only
 the newest sample of each source). A flood of samples on one source costs the others
 nothing but a dictionary write per sample, and is counted (``coalesced``).
 
-Partitions are context: a ``reachable: HOST`` measurement follows the liveliness token of
-that host's agent (gone when its link is lost, within the bus lease; back when it returns);
-each transition is published as a measurement and as an adaptation event
-(``host_unreachable`` / ``host_reachable``).
+Partitions are context: the monitor follows the liveliness token of every host agent of the
+model (gone when its link is lost, after the bus lease; back when it returns). The leader
+publishes each transition as an adaptation event (``host_unreachable`` /
+``host_reachable``, once per transition: only the leader does) with a line in its log, and
+as the value of each ``reachable: HOST`` measurement the model declares, if any.
 
 Failure is context: an ``available: COMPONENT`` measurement is false while the Run-time
 Resolution Engine leader's state lists an implementation of that component as unavailable
@@ -116,6 +117,15 @@ def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
     return out
 
 
+def model_hosts(dep: Deployment, default: str) -> list[str]:
+    """Every host of the model: declared, or running a component (``default``: the engines'
+    host, where a component without one runs)."""
+    configured = dep.configured
+    return sorted(
+        {h.name for h in configured.hosts} | {c.host or default for c in configured.components}
+    )
+
+
 class MonitorProcess(EngineProcess):
     """The Context Monitor (one replica of the ``monitor`` role)."""
 
@@ -143,8 +153,9 @@ class MonitorProcess(EngineProcess):
         self._pending: dict[str, tuple[Any, float]] = {}
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
-        #: Reachability measurements by host, and the hosts whose agent is reachable now.
-        self.reachability: dict[str, list[str]] = {}
+        #: Every host of the model with its reachability measurements (none, unless the
+        #: model declares ``reachable: HOST``), and the hosts whose agent is reachable now.
+        self.reachability: dict[str, list[str]] = {h: [] for h in model_hosts(dep, host)}
         for meas in dep.package.measurements.measurements:
             if meas.reachable is not None:
                 self.reachability.setdefault(meas.reachable, []).append(meas.name)
@@ -156,6 +167,9 @@ class MonitorProcess(EngineProcess):
                 self.availability.setdefault(meas.available, []).append(meas.name)
         self.available: dict[str, bool] = {}
         self.resolution: LeaderWatch | None = None
+        #: Hosts the start-up query did not find (not yet known to be cut off: the query
+        #: may run before this session has heard of their tokens).
+        self._seed_absent: set[str] = set()
         self._events: zenoh.Publisher | None = None
 
     def source_key(self, source: str) -> str:
@@ -260,15 +274,19 @@ class MonitorProcess(EngineProcess):
         alive = sample.kind == zenoh.SampleKind.PUT
         self.loop.post(lambda: self._host_seen(host, alive))
 
-    def _host_seen(self, host: str, alive: bool) -> None:
-        """A host agent's token appeared or vanished: a new value when it changes."""
+    def _host_seen(self, host: str, alive: bool, *, seed: bool = False) -> None:
+        """A host agent's token appeared or vanished: a new value when it changes, and an
+        event when it was known before (a partition or its end; a host that only joins,
+        or whose token reaches this session just after the start-up query missed it, is
+        no transition)."""
         if host not in self.reachability or self.reachable.get(host) == alive:
             return
-        first = host not in self.reachable
+        transition = host in self.reachable and host not in self._seed_absent
         self.reachable[host] = alive
+        (self._seed_absent.add if seed and not alive else self._seed_absent.discard)(host)
         for name in self.reachability[host]:
             self._emit(m.Measurement(name=name, value=alive, stamp=time.time()))
-        if not first or not alive:
+        if transition:
             self._host_event(host, alive)
 
     # ---- availability (failure as context) ------------------------------------------------
@@ -323,14 +341,23 @@ class MonitorProcess(EngineProcess):
     def _host_event(self, host: str, alive: bool) -> None:
         if not self.leading or self._events is None:
             return
+        message = (
+            f"host {host} is reachable again: its agent's token is back; steps deferred for "
+            "it are applied"
+            if alive
+            else f"host {host} is unreachable: its agent's token is gone (the link to it "
+            "dropped, or the agent stopped); its nodes run on under their agent, steps for "
+            "it are deferred until it is back"
+        )
         ev = m.AdaptationEvent(
             stamp=time.time(),
             kind="host_reachable" if alive else "host_unreachable",
-            message=f"host {host} is {'reachable again' if alive else 'unreachable'}",
+            message=message,
             level="info" if alive else "warning",
             source=self.name,
         )
         self._events.put(_EVT.encode(ev))
+        print(f"rra {self.name}: {message}", flush=True)
 
     def _seed_hosts(self, session: zenoh.Session) -> None:
         """The hosts whose agent is reachable at start; the others are unreachable."""
@@ -342,7 +369,7 @@ class MonitorProcess(EngineProcess):
             if reply.ok is not None
         }
         for host in self.reachability:
-            self._host_seen(host, host in present)
+            self._host_seen(host, host in present, seed=True)
 
     def extra_counters(self) -> dict[str, int]:
         return {

@@ -244,7 +244,7 @@ class ResolutionEngine(EngineProcess):
         except (msgspec.DecodeError, msgspec.ValidationError) as e:
             self.drop("malformed", f"engine state: {e}")
             return
-        if state.fence.leader != self.name:
+        if self.election is None or state.fence.instance != self.election.instance:
             self.loop.post(lambda: self._mirror(state))
 
     def _on_event(self, sample: zenoh.Sample) -> None:
@@ -286,8 +286,7 @@ class ResolutionEngine(EngineProcess):
         is mirrored (``trusted``: the answer of the role's endpoint before the election)."""
         if self.leading:
             return
-        term = (state.fence.epoch, state.fence.leader)
-        if not trusted and (self.election is None or term != self.election.leader):
+        if not trusted and (self.election is None or state.fence.term != self.election.leader):
             self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
             return
         old = self.mirror
@@ -304,7 +303,7 @@ class ResolutionEngine(EngineProcess):
         self.forced, self.conflicts = dict(state.forced), list(state.conflicts)
         self.applied = state.applied
         if state.selection_fence is not None:
-            self.selection_fence = (state.selection_fence.epoch, state.selection_fence.leader)
+            self.selection_fence = state.selection_fence.term
         old = not state.stamp  # a state of a version that did not say what is in effect
         self.effective = frozenset(state.selection if old else state.effective)
         self.effective_cv = dict(state.cv if old else state.effective_cv)
@@ -403,7 +402,7 @@ class ResolutionEngine(EngineProcess):
         if fence is None:
             self.refuse("unfenced selection", f"selection {msg.seq} carries no fence")
             return None
-        term = (fence.epoch, fence.leader)
+        term = fence.term
         if not self._from_adaptation_leader(term):
             self._waiting_for_claim = True  # acted on again when a new claim shows up
             self.refuse(
@@ -898,7 +897,7 @@ class ResolutionEngine(EngineProcess):
             cv=dict(self.cv),
             overrides={n: dict(v) for n, v in self.overrides.items()},
             applied=self.applied,
-            selection_fence=m.Fence(epoch=sel[0], leader=sel[1]) if sel else None,
+            selection_fence=m.Fence.of(sel) if sel else None,
             running=list(self.executor.running.values()),
             standby=list(self.executor.standby.values()),
             forced=dict(self.forced),

@@ -51,7 +51,7 @@ from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.runtime import open_session
 from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
-from rra_agent.host import scheduling
+from rra_agent.host import scheduling, unique
 from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
@@ -85,8 +85,12 @@ class HostAgent:
         data_topics: Mapping[str, int] | None = None,
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
+        engines: bool = False,
     ) -> None:
         self.keys = Keys(system)
+        #: This agent starts the system's engines (``rra up``): a system whose engines run
+        #: on the bus already is refused at start (`rra_agent.host.unique`).
+        self.engines = engines
         self.host = check_chunk(host, "host")
         #: This agent's router is the hub (``rra up``): the tools' endpoint.
         self.hub = hub
@@ -378,7 +382,7 @@ class HostAgent:
     def _admit(self, fence: m.Fence | None) -> bool:
         if fence is None:
             return True
-        term = (fence.epoch, fence.leader)
+        term = fence.term
         if not newer(term, self.fence):
             return False
         self.fence = term
@@ -445,9 +449,7 @@ class HostAgent:
         """The spec with this agent's newest fence (the node refuses older leaders too)."""
         if self.fence is None:
             return spec
-        return msgspec.structs.replace(
-            spec, fence=m.Fence(epoch=self.fence[0], leader=self.fence[1])
-        )
+        return msgspec.structs.replace(spec, fence=m.Fence.of(self.fence))
 
     def _learn_rerun(self) -> None:
         """Log to the run's one Rerun recording, as the first host's nodes do: the engine's
@@ -544,12 +546,15 @@ class HostAgent:
         ]
 
     def identity(self) -> dict[str, Any]:
-        """Its answer to a ``Ping``: pid, host and its router's endpoints (``rra status``)."""
+        """Its answer to a ``Ping``: pid, host, its router's endpoints (``rra status``) and
+        its fork server's pid (None while it has none)."""
+        zygote = self.local.zygote
         return {
             "pid": os.getpid(),
             "host": self.host,
             "listen": list(self.session_bus.listen),
             "connect": list(self.session_bus.connect),
+            "fork_server": zygote.pid if zygote is not None else None,
         }
 
     def stats(self) -> m.ProcessStats:
@@ -611,6 +616,7 @@ class HostAgent:
             raise explain_open_failure(e, self.session_bus, hub=self.hub) from None
         self.session = session
         try:
+            self._check_alone(session)
             self._publisher = session.declare_publisher(
                 self.keys.events,
                 congestion_control=zenoh.CongestionControl.BLOCK,
@@ -634,8 +640,22 @@ class HostAgent:
             for entity in self._entities:
                 entity.undeclare()
             self._entities = []
-            session.close()
+            try:
+                session.close()
+            except zenoh.ZError as e:  # Zenoh's 10 s: e.g. a link being opened to a router
+                # that is gone (seen once when both hosts were stopped together)
+                print(f"rra agent {self.host}: closing the bus session: {e}".split(" at /")[0])
             self.session = None
+
+    def _check_alone(self, session: zenoh.Session) -> None:
+        """Before declaring anything: refuse to be a second agent of this host, or (``rra
+        up``) a second set of engines of this system, on this bus (one line)."""
+        who = "rra up" if self.engines else "rra agent"
+        why = unique.refusal(
+            session, self.session_bus, self.keys, self.host, engines=self.engines, who=who
+        )
+        if why is not None:
+            raise RraError(why)
 
     def _shutdown(self) -> None:
         """Stop every node with the escalation policy; wait until all have exited (the

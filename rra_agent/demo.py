@@ -169,7 +169,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 def prepare_case(strategy: str, adaptation: bool, out: Path):
     """The scenario case to run: the package's replacement model with ``strategy`` for the
     Proploss controller, the simulator's topics recorded, a Rerun recording saved."""
-    from rra_agent.models.loader import load_package
+    from rra_agent.package.loader import load_package
     from rra_agent.scenario.model import load_scenario
 
     sf = load_scenario(SCENARIO)

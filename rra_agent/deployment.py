@@ -21,8 +21,9 @@ from pathlib import Path
 from rra_agent.core.features import complete_deployment
 from rra_agent.core.resolution import resolve_deployment
 from rra_agent.errors import RraError
-from rra_agent.models.loader import SystemPackage, load_package, package_root
 from rra_agent.models.system import SystemModel
+from rra_agent.package.contents import SystemPackage
+from rra_agent.package.loader import load_package, package_root
 
 
 @dataclass(frozen=True)
@@ -46,12 +47,12 @@ class Deployment:
 
     def initial_cv(self) -> dict[str, float]:
         """Continuous Variability values before the first adaptation: what the Adaptation
-        Engine starts from (its value, else its lower bound, clamped by active NFRs)."""
+        AdaptationEngine starts from (its value, else its lower bound, clamped by active NFRs)."""
         pkg = self.package
         if pkg.adaptation is not None:
-            from rra_agent.core.rules import Engine
+            from rra_agent.core.adaptation import AdaptationEngine
 
-            return Engine(pkg.features, self.selection, pkg.adaptation).cv
+            return AdaptationEngine(pkg.features, self.selection, pkg.adaptation).cv
         out = {}
         for name, (_, attr) in pkg.features.attributes.items():
             if attr.kind == "cv":

@@ -15,13 +15,57 @@ import pytest
 import yaml
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.client import BusClient, gather, set_params, wait_until
 from rra_agent.bus.config import free_port
 from rra_agent.bus.keys import Keys
-from rra_agent.cli.status import gather, set_params
 from rra_agent.engines.events import read_events
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+#: A test using one of these fixtures starts processes (or opens Zenoh sessions): `system`.
+SYSTEM_FIXTURES = frozenset({"procs", "system", "bus", "hub_port", "hog", "pytester"})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark `system` every test that starts processes: by its fixtures, and every scenario
+    case (``pytest -m "not system"`` runs the in-process suite)."""
+    for item in items:
+        fixtures = set(getattr(item, "fixturenames", ()))
+        if fixtures & SYSTEM_FIXTURES or item.path.name.endswith(".scenario.yaml"):
+            item.add_marker(pytest.mark.system)
+
+
+@pytest.fixture(autouse=True)
+def in_process_only(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A test not marked `system` may not start a process of this project (``rra``, an
+    ``rra_agent`` module, a tool) or open a Zenoh session: the in-process suite stays fast,
+    and a test that forgets its mark says so. (Libraries may still probe with a process of
+    their own: glfw does when mujoco is imported.)"""
+    if request.node.get_closest_marker("system") is not None:
+        return
+    import zenoh
+
+    def refuse() -> AssertionError:
+        return AssertionError(
+            f"{request.node.nodeid} starts a process or opens a Zenoh session: "
+            "mark it @pytest.mark.system"
+        )
+
+    popen = subprocess.Popen
+
+    class Guarded(popen):  # type: ignore[misc, valid-type]
+        def __init__(self, args: object, *rest: object, **kw: object) -> None:
+            text = " ".join(map(str, args)) if isinstance(args, list | tuple) else str(args)
+            if "rra_agent" in text or f"{os.sep}tools{os.sep}" in text or text.startswith("rra"):
+                raise refuse()
+            super().__init__(args, *rest, **kw)
+
+    def no_session(*args: object, **kwargs: object) -> None:
+        raise refuse()
+
+    monkeypatch.setattr(subprocess, "Popen", Guarded)
+    monkeypatch.setattr(zenoh, "open", no_session)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

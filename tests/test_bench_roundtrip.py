@@ -9,11 +9,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD
-from rra_agent.node import decode_data, encode_data
+from rra_agent.bus.data import decode_data, encode_data
 
 TOOLS = Path(__file__).resolve().parents[1] / "tools"
 sys.path.insert(0, str(TOOLS))
@@ -67,6 +68,7 @@ def test_the_floor_echo_refuses_what_the_sdk_refuses():
     assert pub.puts == []
 
 
+@pytest.mark.system
 def test_the_in_process_timings_run_each_callback_and_the_sdk_relays():
     """The hot-cache table times the three callbacks in this process (the SDK's through
     ZenohTransport and a NodeCore running Relay): each runs, and costs something."""

@@ -7,6 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
+
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "scenarios" / "object_storing"
 

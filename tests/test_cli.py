@@ -240,6 +240,7 @@ SUBPROCESS_CASES = [
 
 
 @pytest.mark.parametrize(("kind", "file"), SUBPROCESS_CASES)
+@pytest.mark.system
 def test_validate_as_a_subprocess(tmp_path: Path, kind: str, file: str) -> None:
     old, new, token, fragment = MATRIX[kind][file]
     root, prefix = corrupt(tmp_path, file, old, new, token)
@@ -250,6 +251,7 @@ def test_validate_as_a_subprocess(tmp_path: Path, kind: str, file: str) -> None:
     assert proc.stderr == f"{root}: 1 error(s)\n"
 
 
+@pytest.mark.system
 def test_a_uvl_syntax_error_is_located(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     root = copy_mini(tmp_path)
     path = root / "features.uvl"
@@ -284,6 +286,7 @@ def test_validate_lists_errors_of_several_files(
     assert err == f"{root}: 3 error(s)\n"
 
 
+@pytest.mark.system
 def test_validate_a_clean_package(capsys: pytest.CaptureFixture[str]) -> None:
     rc, out, err = run(["validate", str(MINI)], capsys)
     assert (rc, err) == (0, "")
@@ -373,6 +376,7 @@ def test_resolve_refuses_an_invalid_package(
 
 
 @pytest.mark.usefixtures("resolution_engine")
+@pytest.mark.system
 def test_resolve_as_a_subprocess() -> None:
     proc = run_subprocess("resolve", str(MINI), "--select", "Manipulation", "--format", "json")
     assert proc.returncode == 0, proc.stderr
@@ -414,6 +418,7 @@ def test_any_rra_error_is_one_line_without_traceback(
     assert run(["resolve", "x"], capsys) == (1, "", "rra resolve: the engine is on fire\n")
 
 
+@pytest.mark.system
 def test_split_selection() -> None:
     assert cli.split_selection(["A,B", " C ", ",", "D,"]) == ["A", "B", "C", "D"]
 
@@ -446,6 +451,7 @@ def test_validate_parses_the_adaptation_rules(
     assert "ChanelB" in out and "ChannelB" in out
 
 
+@pytest.mark.system
 def test_lazy_handlers_import_on_use() -> None:
     handler = cli.lazy("rra_agent.cli.commands:split_selection")
     assert handler(["A,B"]) == ["A", "B"]  # type: ignore[arg-type]

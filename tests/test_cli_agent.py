@@ -8,6 +8,7 @@ import signal
 import socket
 from pathlib import Path
 
+import pytest
 from conftest import run_rra, wait_until
 from test_host_agent import PACKAGE, SYSTEM, relay_spec
 
@@ -15,6 +16,9 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient
 from rra_agent.bus.config import free_port
 from rra_agent.bus.keys import Keys
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 
 def test_agent_prints_its_host_router_and_nodes(procs, bus, tmp_path: Path) -> None:

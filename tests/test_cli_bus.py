@@ -19,8 +19,11 @@ from conftest import RELAY, run_rra
 
 from rra_agent.bus.client import ANSWER_TIMEOUT
 from rra_agent.bus.config import BusConfig, Tls, free_port
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.cli import main
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 TOOLS = [["status"], ["events"], ["param", "source"]]
 

@@ -23,11 +23,13 @@ import pytest
 from conftest import RELAY, ROOT, pid_alive, wait_until
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient
+from rra_agent.bus.client import BusClient, gather
 from rra_agent.bus.config import BusConfig, free_port
-from rra_agent.cli.status import gather
 from rra_agent.engines.events import read_events
 from rra_agent.host.supervisor import State, StopPolicy, Supervisor
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 #: What a log of a normal shutdown must not contain.
 FAILURE = re.compile(r"BACKOFF|FATAL|Traceback|lost")

@@ -24,7 +24,9 @@ from test_secure_system import secure  # noqa: F401 (the fixture)
 
 from rra_agent.bus import messages as m
 from rra_agent.cli import main
-from rra_agent.cli.status import WIDTH, EventFilter, format_event, refused_section
+from rra_agent.cli.common import WIDTH
+from rra_agent.cli.events import EventFilter, format_event
+from rra_agent.cli.status import refused_section
 from rra_agent.engines.events import phase_durations
 
 

@@ -10,7 +10,7 @@ from rra_agent.core.conflicts import Conflict, check_conflicts
 from rra_agent.dsl.rules import load_rules, parse_rules
 from rra_agent.dsl.uvl import load_uvl
 from rra_agent.models.measurements import Measurement, MeasurementsModel
-from rra_agent.models.yamlload import load_yaml
+from rra_agent.package.yamlload import load_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 OS = ROOT / "scenarios" / "object_storing"

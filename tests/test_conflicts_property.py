@@ -21,8 +21,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from rra_agent.core.adaptation import AdaptationEngine
 from rra_agent.core.conflicts import check_conflicts
-from rra_agent.core.rules import Engine
 from rra_agent.dsl.rules import parse_rules
 from rra_agent.dsl.uvl import parse_uvl
 from rra_agent.models.measurements import Measurement, MeasurementsModel
@@ -145,7 +145,7 @@ def run_points(
     seen: set[tuple[str, frozenset]] = set()
     fired: list[set[tuple[str, str]]] = []
     for point in points:
-        engine = Engine(FM, frozenset({"P"}), model)
+        engine = AdaptationEngine(FM, frozenset({"P"}), model)
         values = {n: (v, 1.0) for n, v in zip(sorted(names), point, strict=True)}
         result = engine.tick(1.0, values, changed=list(names))
         for c in result.conflicts:
@@ -161,7 +161,7 @@ def fire_together(names: dict[str, str], model, text: str, both: set[tuple[str, 
     every point: what fires depends on the values only."""
     constants = _numbers(text.split("\n", 1)[1])
     domains = [sample_values(names[n], constants) for n in sorted(names)]
-    engine = Engine(FM, frozenset({"P"}), model)
+    engine = AdaptationEngine(FM, frozenset({"P"}), model)
     for point in itertools.islice(itertools.product(*domains), 50_000):
         values = {n: (v, 1.0) for n, v in zip(sorted(names), point, strict=True)}
         result = engine.tick(1.0, values, changed=list(names))

@@ -7,7 +7,7 @@ import math
 import msgspec
 import pytest
 
-from rra_agent.core.context import ContextMonitor, coerce, measurement_problem
+from rra_agent.core.monitor import ContextMonitor, coerce, measurement_problem
 from rra_agent.library.laser import closest_obstacle
 from rra_agent.models.measurements import MeasurementsModel
 

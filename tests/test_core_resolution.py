@@ -13,7 +13,7 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rra_agent.core.resolution import (
+from rra_agent.core.plan import (
     Plan,
     Rewire,
     SetImplementation,
@@ -22,11 +22,10 @@ from rra_agent.core.resolution import (
     StopComponent,
     SwapComponent,
     diff,
-    resolve_deployment,
-    resolve_runtime,
     subscriptions,
     topic_of,
 )
+from rra_agent.core.resolution import resolve_deployment, resolve_runtime
 from rra_agent.errors import ResolutionError, SelectionError
 from rra_agent.models.features import (
     Attribute,
@@ -37,8 +36,8 @@ from rra_agent.models.features import (
     Implies,
     Ref,
 )
+from rra_agent.models.manifest import Manifest
 from rra_agent.models.measurements import MeasurementsModel
-from rra_agent.models.package import Manifest
 from rra_agent.models.resolution import DeploymentResolutionModel, RuntimeResolutionModel
 from rra_agent.models.system import Component, Connection, Parameter, Port, SystemModel
 
@@ -254,8 +253,8 @@ def test_struct_feature_models_match_the_uvl_files(package: str, built: FeatureM
 @pytest.mark.parametrize("package", ["object_storing", "quadcopter"])
 def test_packages_pass_cross_reference_validation(package: str, tmp_path: Path) -> None:
     pytest.importorskip("rra_agent.dsl.uvl")
-    loader = pytest.importorskip("rra_agent.models.loader")
-    validate = pytest.importorskip("rra_agent.models.validate")
+    loader = pytest.importorskip("rra_agent.package.loader")
+    validate = pytest.importorskip("rra_agent.package.validate")
     # The models of this package, without its adaptation model (checked with the rule DSL).
     for name in ("features.uvl", *YAML_FILES):
         text = (SCENARIOS / package / name).read_text()

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, wait_until
-from rra_agent.cli.status import effect_lines, gather, set_params
+from rra_agent.bus.client import BusClient, gather, set_params, wait_until
+from rra_agent.cli.status import effect_lines
 from rra_agent.engines.events import read_events
 from rra_agent.scenario import expectations as x
 from tests.conftest import ROOT, edit_yaml, listening
@@ -21,6 +21,7 @@ from tests.conftest import ROOT, edit_yaml, listening
 AGV = ROOT / "tests" / "data" / "agv"
 
 
+@pytest.mark.system
 def test_the_agv_keeps_its_speed_limit_when_its_camera_cannot_start(tmp_path: Path) -> None:
     """The scenario the issue measured: on the old code the speed limit never reached the
     motion controller (1.4 m/s in the human zone) and the beacon never ran, while the

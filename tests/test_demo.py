@@ -6,11 +6,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from rra_agent.bus import messages as m
 from rra_agent.demo import recovery_report
 from rra_agent.scenario.expectations import Applied, DataSample, Recording
 from rra_agent.viz.blueprint import read_blueprint
 from rra_agent.viz.recording import entity_paths, verify
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,9 +17,10 @@ from hypothesis import strategies as st
 from rra_agent.core import resolution as r
 from rra_agent.core.effect import effective_model, in_effect
 from rra_agent.core.features import apply_requests, complete_deployment, default_runtime_selection
+from rra_agent.core.plan import diff, subscriptions
 from rra_agent.engines.executor import Executor
-from rra_agent.models.loader import load_package
 from rra_agent.models.resolution import Replacement
+from rra_agent.package.loader import load_package
 from tests.test_executor import FakeActuator, K
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,7 +57,7 @@ def target(choice: tuple) -> r.SystemModel:
 def check_runs_as(ex: Executor, model: r.SystemModel) -> None:
     """The executor's running nodes are exactly ``model``'s, as ``model`` configures them."""
     assert set(ex.running) == {c.name for c in model.components}
-    subs = r.subscriptions(model)
+    subs = subscriptions(model)
     for c in model.components:
         spec = ex.running[c.name]
         assert spec.implementation == c.implementation, c.name
@@ -85,16 +86,16 @@ def test_whatever_fails_the_nodes_run_as_the_effective_model(
     ex = Executor(act, K, Replacement(default=strategy), default_host="local")
     empty = r.SystemModel(system=CONFIGURED.system, hosts=CONFIGURED.hosts)
     current = target(a)
-    assert ex.execute(r.diff(empty, current)).ok
+    assert ex.execute(diff(empty, current)).ok
     goal = target(b)
     act.broken = {(c.name, c.implementation) for c in goal.components if c.name in start_fails}
     act.fail_on = {("params", n) for n in params_fail}
-    out = ex.execute(r.diff(current, goal))
+    out = ex.execute(diff(current, goal))
     effective = effective_model(current, goal, out.failed_structure, out.failed_parameters)
     check_runs_as(ex, effective)
     # and once nothing fails any more, the rest of the way is the plan from there
     act.fail_on, act.broken = set(), set()
-    assert ex.execute(r.diff(effective, goal)).ok
+    assert ex.execute(diff(effective, goal)).ok
     check_runs_as(ex, goal)
 
 
@@ -106,9 +107,9 @@ def test_what_is_in_effect_when_the_channel_cannot_start():
     act = FakeActuator()
     ex = Executor(act, K, Replacement(), default_host="local")
     empty = r.SystemModel(system=CONFIGURED.system, hosts=CONFIGURED.hosts)
-    assert ex.execute(r.diff(empty, target(a))).ok
+    assert ex.execute(diff(empty, target(a))).ok
     act.fail_on = {("start", "radio_driver_b")}
-    out = ex.execute(r.diff(target(a), target(b)))
+    out = ex.execute(diff(target(a), target(b)))
     assert out.partial
     effective = effective_model(target(a), target(b), out.failed_structure, out.failed_parameters)
     (sel_a, cv_a), (sel_b, cv_b) = selection(a), selection(b)
@@ -124,9 +125,9 @@ def test_a_parameter_refused_keeps_its_cv_out_of_effect():
     act = FakeActuator()
     ex = Executor(act, K, Replacement(), default_host="local")
     empty = r.SystemModel(system=CONFIGURED.system, hosts=CONFIGURED.hosts)
-    assert ex.execute(r.diff(empty, target(a))).ok
+    assert ex.execute(diff(empty, target(a))).ok
     act.fail_on = {("params", "local_navigation")}
-    out = ex.execute(r.diff(target(a), target(b)))
+    out = ex.execute(diff(target(a), target(b)))
     assert not out.ok
     effective = effective_model(target(a), target(b), out.failed_structure, out.failed_parameters)
     (sel_a, cv_a), (sel_b, cv_b) = selection(a), selection(b)

@@ -14,6 +14,7 @@ from rra_agent.bus.messages import NodeSpec
 from rra_agent.core import resolution as r
 from rra_agent.core.effect import effective_model
 from rra_agent.core.features import complete_deployment
+from rra_agent.core.plan import Plan, diff, standby_subscriptions
 from rra_agent.engines.executor import (
     Ctl,
     Executor,
@@ -22,9 +23,9 @@ from rra_agent.engines.executor import (
     plan_units,
     spec_for,
 )
-from rra_agent.models.loader import load_package
 from rra_agent.models.resolution import Replacement, StateTransfer
 from rra_agent.models.system import SystemModel
+from rra_agent.package.loader import load_package
 
 ROOT = Path(__file__).resolve().parents[1]
 K = Keys("quadcopter")
@@ -126,12 +127,12 @@ def make(
 
 def deploy(ex: Executor, act: FakeActuator, target: SystemModel) -> None:
     empty = msgspec.structs.replace(target, components=[], connections=[])
-    assert ex.execute(r.diff(empty, target)).ok
+    assert ex.execute(diff(empty, target)).ok
     act.calls.clear()
 
 
-def swap_plan(target) -> r.Plan:
-    plan = r.diff(target("Standard"), target("Proploss"))
+def swap_plan(target) -> Plan:
+    plan = diff(target("Standard"), target("Proploss"))
     kinds = [type(s).__name__ for s in plan.steps]
     assert kinds == ["SwapComponent", "Rewire"], kinds
     return plan
@@ -141,7 +142,7 @@ def test_deploy_starts_everything_at_once_and_tracks_specs(quad):
     _, target = quad
     ex, act = make("stop-then-start")
     empty = msgspec.structs.replace(target("Standard"), components=[], connections=[])
-    out = ex.execute(r.diff(empty, target("Standard")))
+    out = ex.execute(diff(empty, target("Standard")))
     assert out.ok and [c[0] for c in act.calls] == ["start"] * 4
     assert set(ex.running) == {
         "trajectory_generator",
@@ -278,7 +279,7 @@ def test_parameters_of_two_components_are_applied_each_on_its_own():
     ex, act = make("stop-then-start")
     deploy(ex, act, sysm)
     act.fail_on = {("params", "b")}
-    out = ex.execute(r.diff(sysm, tgt))
+    out = ex.execute(diff(sysm, tgt))
     assert not out.ok and out.partial and out.rolled_back
     assert act.calls == [("params", "a", {"v": 2.0}), ("params", "b", {"w": 5})]
     assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 1}
@@ -286,7 +287,7 @@ def test_parameters_of_two_components_are_applied_each_on_its_own():
     assert failure.parameters == {"b"} and not failure.structure
     assert failure.steps == ["set b w=5"] and "params b failed" in failure.error
     act.fail_on = set()
-    assert ex.execute(r.diff(effective_model(sysm, tgt, (), {"b"}), tgt)).ok
+    assert ex.execute(diff(effective_model(sysm, tgt, (), {"b"}), tgt)).ok
     assert ex.running["a"].params == {"v": 2.0} and ex.running["b"].params == {"w": 5}
 
 
@@ -324,7 +325,7 @@ def test_swapped_out_node_kept_as_standby_is_deactivated_for_the_way_back(quad):
     assert set(ex.standby) == {"controller"} and not ex.standby["controller"].active
     # and back: the controller is switched to again without a start
     act.calls.clear()
-    back = r.diff(target("Proploss"), target("Standard"))
+    back = diff(target("Proploss"), target("Standard"))
     assert ex.execute(back).ok
     assert not any(c[0] == "start" for c in act.calls)
     assert ("active", "controller", True) in act.calls
@@ -362,7 +363,7 @@ def hot_executor(
         if transfer
         else [],
     )
-    held = r.standby_subscriptions(configured, hot)
+    held = standby_subscriptions(configured, hot)
     ex = Executor(act, K, rep, default_host="local", standby_inputs=held)
     deploy(ex, act, target("Standard"))
     swap = swap_plan(target).steps[0]
@@ -406,7 +407,7 @@ def test_a_hot_standby_swapped_out_stays_active_for_the_way_back(quad):
     assert not any(c[0] in ("stop", "active") for c in act.calls), act.calls
     assert set(ex.standby) == {"controller"} and ex.standby["controller"].active
     act.calls.clear()
-    assert ex.execute(r.diff(target("Proploss"), target("Standard"))).ok
+    assert ex.execute(diff(target("Proploss"), target("Standard"))).ok
     assert [c[0] for c in act.calls] == ["rewire"], act.calls
     assert set(ex.standby) == {"proploss_controller"}
 
@@ -465,7 +466,7 @@ def test_a_component_that_cannot_start_does_not_hold_back_the_speed_limit():
     deploy(ex, act, agv(camera=False, human_zone=False))
     act.fail_on = {("start", "camera")}
     before, after = agv(camera=False, human_zone=False), agv(camera=True, human_zone=True)
-    out = ex.execute(r.diff(before, after))
+    out = ex.execute(diff(before, after))
     assert not out.ok and out.partial and out.rolled_back
     # the speed limit first: it never waits for a start (seconds, or a timeout)
     assert act.calls[0] == ("params", "motion", {"max_speed": 0.5})
@@ -477,13 +478,13 @@ def test_a_component_that_cannot_start_does_not_hold_back_the_speed_limit():
     assert failure.nodes == {"camera": "start camera failed"}
     effective = effective_model(before, after, failure.structure, failure.parameters)
     assert {c.name for c in effective.components} == set(ex.running)
-    assert r.diff(effective, after).steps  # the camera is still to come
+    assert diff(effective, after).steps  # the camera is still to come
 
 
 def test_units_of_a_plan_follow_its_dependencies():
     ex, act = make("stop-then-start")
     deploy(ex, act, agv(camera=False, human_zone=False))
-    plan = r.diff(agv(camera=False, human_zone=False), agv(camera=True, human_zone=True))
+    plan = diff(agv(camera=False, human_zone=False), agv(camera=True, human_zone=True))
     units = plan_units(plan.steps, ex.running, K.data)
     by_unit: dict[int, set[str]] = {}
     for step, u in zip(plan.steps, units, strict=True):
@@ -499,7 +500,7 @@ def test_an_unavailable_component_is_not_tried():
     ex, act = make("stop-then-start")
     deploy(ex, act, agv(camera=False, human_zone=False))
     out = ex.execute(
-        r.diff(agv(camera=False, human_zone=False), agv(camera=True, human_zone=True)),
+        diff(agv(camera=False, human_zone=False), agv(camera=True, human_zone=True)),
         skip={"camera"},
     )
     assert not any(c[:2] == ("start", "camera") for c in act.calls), act.calls

@@ -1,4 +1,4 @@
-"""Saying why a node failed, without processes: `rra_agent.failure` (where in the node's own
+"""Saying why a node failed, without processes: `rra_agent.bus.failure` (where in the node's own
 code, the report file), the Node SDK's handling of exceptions of node code (`NodeHarness`),
 the supervisor's reasons, and how ``rra events``, ``rra status``, the Rerun log and
 ``rra test`` show a failure. The same with real processes: tests/test_failure_reports.py."""
@@ -12,12 +12,15 @@ from typing import Any
 
 import pytest
 
-from rra_agent import failure
+from rra_agent.bus import failure
 from rra_agent.bus import messages as m
-from rra_agent.cli.status import WIDTH, format_event, render
+from rra_agent.cli.common import WIDTH
+from rra_agent.cli.events import format_event
+from rra_agent.cli.status import render
 from rra_agent.errors import RraError
 from rra_agent.host.supervisor import State, Supervisor
-from rra_agent.node import Node, NodeCore, NodeHarness
+from rra_agent.node import Node, NodeHarness
+from rra_agent.node.core import NodeCore
 from rra_agent.scenario import runner
 
 HERE = Path(__file__).name
@@ -40,7 +43,7 @@ def line_of(fn: Any, token: str) -> int:
     return first + next(i for i, text in enumerate(lines) if token in text)
 
 
-# ---- rra_agent.failure ------------------------------------------------------------------------
+# ---- rra_agent.bus.failure ----------------------------------------------------------------
 def _helper() -> None:
     raise KeyError("gain")
 

@@ -24,10 +24,10 @@ from conftest import RELAY, ROOT, listening, pid_alive, plant, position, run_rra
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.bus.keys import Keys
 from rra_agent.deployment import deploy
 from rra_agent.host.catalog import Catalog
-from rra_agent.node import decode_data, encode_data
 
 PACKAGE = Path(__file__).parent / "data" / "crashy"
 NODES = (PACKAGE / "crashy_nodes.py").read_text()
@@ -379,6 +379,7 @@ def camera_package(root: Path) -> Path:
     return pkg
 
 
+@pytest.mark.system
 def test_rra_test_keeps_a_crashed_nodes_log_with_the_verdict(tmp_path):
     """relay_system whose ``filtered`` node cannot open its camera: the case passes (it
     expects no more than a clean stop), and still the verdict names what filtered raised

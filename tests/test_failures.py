@@ -29,11 +29,10 @@ from conftest import RELAY_KEYS as K
 from test_runtime import is_tick
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.client import BusClient, NoReply, set_params, wait_until
 from rra_agent.bus.config import free_port
-from rra_agent.cli.status import set_params
+from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.errors import RraError
-from rra_agent.node import decode_data, encode_data
 
 ROOT = Path(__file__).resolve().parents[1]
 _EVT = m.Codec[m.EventMessage](m.EventMessage)

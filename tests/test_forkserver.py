@@ -19,9 +19,12 @@ from conftest import pid_alive
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.messages import NodeSpec, PortSpec
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.host.processes import LocalHost
 from rra_agent.models.system import Command, Scheduling, Supervision
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 
 def spec(name: str, impl: str | Command = "rra_agent.nodes.generic.Relay") -> NodeSpec:

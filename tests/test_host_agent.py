@@ -17,9 +17,9 @@ from conftest import pid_alive
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
 from rra_agent.bus.counters import MAX_PAYLOAD
+from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.bus.keys import Keys
 from rra_agent.models.system import Command, Scheduling, Supervision
-from rra_agent.node import decode_data, encode_data
 
 SYSTEM = "hosttest"
 PACKAGE = Path(__file__).parent / "data" / "hosttest"

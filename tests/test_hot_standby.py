@@ -7,7 +7,9 @@ from types import SimpleNamespace
 from typing import Any
 
 from rra_agent.bus import messages as m
-from rra_agent.node import REPLAY_MAX_AGE, Node, NodeCore, encode_data
+from rra_agent.bus.data import encode_data
+from rra_agent.node import Node
+from rra_agent.node.core import REPLAY_MAX_AGE, NodeCore
 
 ACTIVE, HOT = "rra/t/data/controller/out", "rra/t/data/proploss/out"
 
@@ -119,7 +121,7 @@ def test_a_sample_of_the_producer_swapped_out_is_not_delivered_after_the_switch(
     """A command of the old controller that was on its way when the rewire dropped it (in
     its subscription's queue, or waiting for the node's lock while the rewire ran) must not
     reach the node after the switch: it would drive one more step with the old command."""
-    from rra_agent.bus.runtime import ZenohTransport
+    from rra_agent.node.runtime import ZenohTransport
 
     session = FakeSession()
     transport = ZenohTransport(session)  # type: ignore[arg-type]

@@ -18,7 +18,7 @@ import pytest
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.deployment import deploy
-from rra_agent.engines.monitor import MonitorProcess
+from rra_agent.engines.monitor import ContextMonitorProcess
 
 ROVER = Path(__file__).parent / "data" / "rover"
 
@@ -37,7 +37,7 @@ def test_a_measurement_computed_before_leading_is_published_on_taking_the_lead(
     monkeypatch.setattr(sys, "path", list(sys.path))  # the monitor adds the package folder
     monkeypatch.setitem(sys.modules, "rover_functions", None)  # and imports its functions
     monkeypatch.delitem(sys.modules, "rover_functions")
-    proc = MonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
+    proc = ContextMonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
     sent: list[m.Measurement] = []
     proc.publishers = {s.m.name: Publisher(sent) for s in proc.core.specs}  # type: ignore[misc]
     fix = {"seq": 1, "satellites": 7, "indoor": False, "speed": 0.5}
@@ -66,7 +66,7 @@ def test_an_unchanged_measurement_is_sent_again_only_to_stay_fresh(
     monkeypatch.setattr(sys, "path", list(sys.path))
     monkeypatch.setitem(sys.modules, "rover_functions", None)
     monkeypatch.delitem(sys.modules, "rover_functions")
-    proc = MonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
+    proc = ContextMonitorProcess(deploy(ROVER), BusConfig(), name="monitor-a")
     proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
     sent: list[m.Measurement] = []
     proc.publishers = {s.m.name: Publisher(sent) for s in proc.core.specs}  # type: ignore[misc]
@@ -95,9 +95,9 @@ def test_a_standby_resolution_engine_keeps_a_selection_without_waking_its_loop()
     waking its main loop for each one competed with the leader's plan for the CPU."""
     from conftest import RELAY
 
-    from rra_agent.engines.resolution import ResolutionEngine
+    from rra_agent.engines.resolution import ResolutionEngineProcess
 
-    proc = ResolutionEngine(deploy(RELAY), BusConfig(), name="resolution-b")
+    proc = ResolutionEngineProcess(deploy(RELAY), BusConfig(), name="resolution-b")
     proc.election = SimpleNamespace(leading=False)  # type: ignore[assignment]
     sel = m.Selection(seq=1, stamp=1.0, deployment=[], features=["A"], cv={}, changed=True)
     sample = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: msgspec.msgpack.encode(sel)))
@@ -115,9 +115,9 @@ def test_the_leading_adaptation_engine_drops_other_selections_without_waking_its
     standby still follows its leader's selections on its main loop."""
     from conftest import RELAY
 
-    from rra_agent.engines.adaptation import AdaptationProcess
+    from rra_agent.engines.adaptation import AdaptationEngineProcess
 
-    proc = AdaptationProcess(deploy(RELAY), BusConfig(), name="adaptation-a")
+    proc = AdaptationEngineProcess(deploy(RELAY), BusConfig(), name="adaptation-a")
     fence = m.Fence(epoch=9, leader="mallory")
     sel = m.Selection(seq=1, stamp=1.0, deployment=[], features=["A"], cv={}, fence=fence)
     sample = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: msgspec.msgpack.encode(sel)))

@@ -52,7 +52,10 @@ TLS_HUB = f"tls/127.0.0.1:{PORT}"
 LOCAL_ROUTER = ("127.0.0.1", PORT)
 DELAY_MS = 20.0
 
-pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="network namespaces: Linux")
+pytestmark = [
+    pytest.mark.system,
+    pytest.mark.skipif(sys.platform != "linux", reason="network namespaces: Linux"),
+]
 
 
 # ---- clients inside a namespace -----------------------------------------------------------
@@ -154,7 +157,7 @@ class Rra:
             assert probe.returncode == 0, self.net.log(f"probe-{self.host}")
 
     def status(self) -> dict:
-        """What ``rra status --json`` prints (`rra_agent.cli.status.gather`)."""
+        """What ``rra status --json`` prints (`rra_agent.bus.client.gather`)."""
         return self.call("status")
 
     def wait(self, pred, what: str, timeout: float = 30) -> dict:
@@ -563,9 +566,8 @@ def serve(client, request: list[str]):
     import msgspec
 
     from rra_agent.bus import messages as m
-    from rra_agent.bus.client import wait_until
-    from rra_agent.cli.status import gather
-    from rra_agent.node import decode_data
+    from rra_agent.bus.client import gather, wait_until
+    from rra_agent.bus.data import decode_data
 
     match request:
         case ["status"]:

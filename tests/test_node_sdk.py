@@ -12,7 +12,8 @@ import pytest
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD
-from rra_agent.node import Node, NodeError, NodeHarness, encode_data
+from rra_agent.bus.data import encode_data
+from rra_agent.node import Node, NodeError, NodeHarness
 
 PORTS = {"in": ("subscribe", "T"), "out": ("publish", "T")}
 

@@ -19,11 +19,12 @@ import msgspec
 import pytest
 
 from rra_agent.bus import messages as m
+from rra_agent.bus.data import decode_data
 from rra_agent.core.resolution import resolve_deployment, resolve_runtime
 from rra_agent.library.laser import closest_obstacle
-from rra_agent.models.loader import load_package
 from rra_agent.models.system import Component, SystemModel, parse_endpoint
-from rra_agent.node import Node, NodeHarness, decode_data, load_node_class
+from rra_agent.node import Node, NodeHarness
+from rra_agent.node.loading import load_node_class
 from rra_agent.nodes.object_storing import (
     ArmController,
     DwaLocalNavigation,
@@ -42,6 +43,7 @@ from rra_agent.nodes.object_storing import (
 )
 from rra_agent.nodes.object_storing._common import SafeNode
 from rra_agent.nodes.object_storing.radio import pack, unpack
+from rra_agent.package.loader import load_package
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = "rra_agent.nodes.object_storing"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+import pytest
 from conftest import RELAY, System, pid_alive
 from conftest import RELAY_KEYS as K
 
@@ -18,8 +19,11 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import NoReply, wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.loop import MainLoop
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.engines.election import Election
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 
 def pids(st: dict) -> dict[str, int]:

@@ -20,12 +20,13 @@ from conftest import ROOT, plant, position, run_rra
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.messages import NodeSpec, PortSpec
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.errors import Location, ModelError
 from rra_agent.host.processes import LocalHost
-from rra_agent.models.loader import load_package
-from rra_agent.models.validate import validate_package
-from rra_agent.node import NodeError, load_node_class
+from rra_agent.node import NodeError
+from rra_agent.node.loading import load_node_class
+from rra_agent.package.loader import load_package
+from rra_agent.package.validate import validate_package
 
 ROVER = Path(__file__).parent / "data" / "rover"
 
@@ -46,6 +47,7 @@ def planted(tmp_path: Path, old: str, new: str) -> tuple[Path, str, list[ModelEr
     return root, text, errors_of(root)
 
 
+@pytest.mark.system
 def test_the_rover_package_validates() -> None:
     assert errors_of(ROVER) == []
     out = run_rra("validate", str(ROVER))
@@ -53,6 +55,7 @@ def test_the_rover_package_validates() -> None:
 
 
 # ---- rra validate resolves implementations ---------------------------------------------------
+@pytest.mark.system
 def test_a_typo_in_a_generic_node_class_is_a_located_error(tmp_path: Path) -> None:
     old = "implementation: rra_agent.nodes.generic.Relay\n    parameters:"
     new = "implementation: rra_agent.nodes.generic.Tickr\n    parameters:"
@@ -173,6 +176,7 @@ def test_the_package_folder_comes_after_the_standard_library(tmp_path: Path, mon
     sys.modules.pop("rover_nodes", None)
 
 
+@pytest.mark.system
 def test_the_fork_server_preloads_and_warms_up_package_node_classes(tmp_path: Path) -> None:
     """The zygote has the package folder on its import path: a package's node class is
     imported and warmed up once there, and the forked node inherits it."""
@@ -210,6 +214,7 @@ def test_the_fork_server_preloads_and_warms_up_package_node_classes(tmp_path: Pa
 
 
 # ---- rra up of the package --------------------------------------------------------------------
+@pytest.mark.system
 def test_rra_up_runs_the_package_s_own_node_class(tmp_path: Path) -> None:
     """The GNSS receiver of the package folder reaches RUNNING and its fixes flow through the
     localizer to the drive; the package's measurement function computes Speed."""

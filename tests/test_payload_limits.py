@@ -14,7 +14,7 @@ from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.counters import MAX_MESSAGE_SIZE, MAX_PAYLOAD, KiB, MiB, router_limits
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 
 K = Keys("lim")
 
@@ -93,6 +93,7 @@ class Seen:
     ],
     ids=["data-1MiB", "data-over", "port-2MiB", "port-over", "ctx", "selection", "cap", "free"],
 )
+@pytest.mark.system
 def test_the_router_delivers_what_is_within_the_limit_and_nothing_over_it(
     router: BusConfig, key: str, size: int, delivered: bool
 ):

@@ -10,6 +10,7 @@ import pytest
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.core import resolution as r
+from rra_agent.core.plan import Plan, subscriptions
 from rra_agent.deployment import deploy
 from rra_agent.engines.executor import spec_for
 from rra_agent.engines.reconcile import Observed, spec_from_info, takeover_plan
@@ -28,7 +29,7 @@ def world():
         return r.resolve_runtime(dep.configured, pkg.runtime, pkg.features, sel, {"Gain": gain})
 
     def expected(model):
-        subs = r.subscriptions(model)
+        subs = subscriptions(model)
         out = {}
         for c in model.components:
             inputs = {p.name: subs.get((c.name, p.name), ()) for p in c.ports}
@@ -39,7 +40,7 @@ def world():
     return target, expected
 
 
-def kinds(plan: r.Plan) -> list[tuple[str, str]]:
+def kinds(plan: Plan) -> list[tuple[str, str]]:
     return [(type(s).__name__, s.component) for s in plan.steps]
 
 

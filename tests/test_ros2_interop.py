@@ -27,6 +27,9 @@ from rra_agent.ros2.graph import GraphWatcher
 from rra_agent.ros2.params import LifecycleClient, LifecycleServer, ParameterClient, ParameterServer
 from rra_agent.ros2.types import TypeRegistry
 
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
+
 pytest.importorskip("zenoh_ros2_sdk")
 
 PEER = Path(__file__).parent / "data" / "ros2" / "sdk_peer.py"

@@ -34,7 +34,7 @@ from rra_agent.models.adaptation import (
 )
 from rra_agent.models.features import Attribute, Feature, FeatureModel, Group
 from rra_agent.models.measurements import Measurement, MeasurementsModel
-from rra_agent.models.yamlload import load_yaml
+from rra_agent.package.yamlload import load_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 OS = ROOT / "scenarios" / "object_storing"
@@ -334,7 +334,7 @@ def test_quoted_booleans_compare_as_booleans(fm, written, value):
 
 
 def test_a_quoted_boolean_fires_like_the_keyword(fm):
-    from rra_agent.core.rules import Engine
+    from rra_agent.core.adaptation import AdaptationEngine
 
     for cond in ('cdm.Indoor == "false"', "cdm.Indoor == false"):
         model = parse(
@@ -342,7 +342,7 @@ def test_a_quoted_boolean_fires_like_the_keyword(fm):
             fm,
             BOOL_MEAS,
         )
-        engine = Engine(fm, {"Manipulation"}, model)
+        engine = AdaptationEngine(fm, {"Manipulation"}, model)
         assert "Dynamic" in engine.tick(1.0, {"Indoor": (False, 1.0)}).selection
         assert "Static" in engine.tick(2.0, {"Indoor": (True, 2.0)}).selection
 
@@ -366,7 +366,7 @@ def test_a_quoted_boolean_against_a_string_measurement_stays_a_string(fm):
 def test_quoted_booleans_of_untyped_measurements_compare_at_run_time(fm):
     """Without a measurements model the type is known only at run time: a bool value and
     "true"/"false" compare as booleans, like a number and a numeric string."""
-    from rra_agent.core.rules import Engine
+    from rra_agent.core.adaptation import AdaptationEngine
 
     model = parse(
         IMPORT + 'rule R: if (cdm.Indoor == "false") activate_feature(Dynamic)'
@@ -374,7 +374,7 @@ def test_quoted_booleans_of_untyped_measurements_compare_at_run_time(fm):
         fm,
         None,
     )
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     assert "Dynamic" in engine.tick(1.0, {"Indoor": (False, 1.0)}).selection
     assert "Static" in engine.tick(2.0, {"Indoor": (True, 2.0)}).selection
 

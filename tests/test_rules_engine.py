@@ -12,8 +12,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from rra_agent.core.adaptation import AdaptationEngine, TickResult
 from rra_agent.core.features import check_selection, complete_deployment
-from rra_agent.core.rules import Engine, TickResult
 from rra_agent.dsl.rules import load_rules, parse_rules
 from rra_agent.dsl.uvl import load_uvl, parse_uvl
 from rra_agent.models.adaptation import (
@@ -32,7 +32,7 @@ from rra_agent.models.adaptation import (
     Str,
 )
 from rra_agent.models.measurements import Measurement, MeasurementsModel
-from rra_agent.models.yamlload import load_yaml
+from rra_agent.package.yamlload import load_yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 OS = ROOT / "scenarios" / "object_storing"
@@ -88,7 +88,7 @@ CONTEXTS = [
 @pytest.mark.parametrize(("loc", "batt", "dist", "mat"), CONTEXTS)
 def test_fig5_table(fig5, loc, batt, dist, mat):
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     r = engine.tick(1.0, sample(1.0, SemLoc=loc, BattLev=batt, ObstDist=dist, Material=mat))
     assert r.selection == fig5_selection(loc, batt, mat)
     assert r.cv == {"MaxVel": pytest.approx(fig5_maxvel(loc, batt, dist), abs=1e-12)}
@@ -99,7 +99,7 @@ def test_fig5_table(fig5, loc, batt, dist, mat):
 def test_fig5_sequence_does_not_depend_on_history(fig5):
     """One engine walked through every context, back and forth, gives the table's answers."""
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     now = 0.0
     for loc, batt, dist, mat in CONTEXTS + CONTEXTS[::-1]:
         now += 0.1
@@ -110,7 +110,7 @@ def test_fig5_sequence_does_not_depend_on_history(fig5):
 
 def test_fig5_corridor_cap_comes_from_the_priority_1_rule(fig5):
     fm, model = fig5
-    r = Engine(fm, {"Manipulation"}, model).tick(
+    r = AdaptationEngine(fm, {"Manipulation"}, model).tick(
         0.0, sample(0.0, SemLoc="Corridor", BattLev=100.0, ObstDist=50.0, Material="Wood")
     )
     fired = [(f.rule, f.value) for f in r.fired if f.ruleset == "MaxVelocity"]
@@ -123,7 +123,7 @@ def test_fig5_velocity_limit_nfr_applies_only_while_dynamic(fig5):
     """Outside the rooms but not in the corridor (the corridor rule does not fire), the
     VelocityLimit NFR of Dynamic still caps MaxVel at 0.5; back in a room it is lifted."""
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     r = engine.tick(0.0, sample(0.0, SemLoc="Lab", BattLev=80.0, ObstDist=3.0, Material="Wood"))
     assert "Dynamic" in r.selection
     assert [f.value for f in r.fired if f.rule == "maxVelBattObst"] == [
@@ -138,7 +138,7 @@ def test_fig5_velocity_limit_nfr_applies_only_while_dynamic(fig5):
 
 def test_fig5_clamps_into_the_cv_bounds(fig5):
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     high = engine.tick(0.0, sample(0.0, SemLoc="RoomA", BattLev=150.0, ObstDist=9.0))
     assert high.cv["MaxVel"] == 0.8
     low = engine.tick(1.0, sample(1.0, SemLoc="RoomA", BattLev=-50.0, ObstDist=9.0))
@@ -148,7 +148,7 @@ def test_fig5_clamps_into_the_cv_bounds(fig5):
 def test_fig5_detection_deployment_never_selects_material(fig5):
     """Material requires Manipulation: with Detection, ObjMaterial's requests are rejected."""
     fm, model = fig5
-    engine = Engine(fm, {"Detection"}, model)
+    engine = AdaptationEngine(fm, {"Detection"}, model)
     r = engine.tick(0.0, sample(0.0, SemLoc="RoomA", BattLev=80.0, ObstDist=1.0, Material="Glass"))
     assert not {"Material", "Fragile", "Firm"} & r.selection
     (rej,) = r.rejected
@@ -160,7 +160,7 @@ def test_fig5_detection_deployment_never_selects_material(fig5):
 
 def test_fig5_fired_rules_name_the_cause(fig5):
     fm, model = fig5
-    r = Engine(fm, {"Manipulation"}, model).tick(
+    r = AdaptationEngine(fm, {"Manipulation"}, model).tick(
         0.0, sample(0.0, SemLoc="RoomB", BattLev=80.0, ObstDist=1.0, Material="Wood")
     )
     by_rule = {f.rule: f for f in r.fired}
@@ -176,7 +176,7 @@ def test_fig5_fired_rules_name_the_cause(fig5):
 
 def test_fig5_missing_measurements_change_nothing(fig5):
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     first = engine.tick(
         0.0, sample(0.0, SemLoc="RoomA", BattLev=80.0, ObstDist=1.0, Material="Glass")
     )
@@ -189,7 +189,7 @@ def test_fig5_missing_measurements_change_nothing(fig5):
 def test_fig5_stale_measurements_are_undefined(fig5):
     """ObstDist has max_age_ms 500: older samples make the MaxVel formula undefined."""
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     engine.tick(0.0, sample(0.0, SemLoc="RoomA", BattLev=80.0, ObstDist=3.0))
     before = engine.cv["MaxVel"]
     stale = {**sample(1.0, SemLoc="RoomA", BattLev=20.0, Material="Wood"), "ObstDist": (0.3, 0.4)}
@@ -202,7 +202,7 @@ def test_fig5_stale_measurements_are_undefined(fig5):
 
 def test_rules_are_compiled_once_not_walked(fig5):
     fm, model = fig5
-    engine = Engine(fm, {"Manipulation"}, model)
+    engine = AdaptationEngine(fm, {"Manipulation"}, model)
     assert "def _g0(M, CV, out, V):" in engine.source
     engine.model = None  # the tick never looks at the AST again
     r = engine.tick(0.0, sample(0.0, SemLoc="RoomB", BattLev=80.0, ObstDist=1.0))
@@ -211,7 +211,7 @@ def test_rules_are_compiled_once_not_walked(fig5):
 
 def test_tick_result_goes_on_the_bus(fig5):
     fm, model = fig5
-    r = Engine(fm, {"Manipulation"}, model).tick(
+    r = AdaptationEngine(fm, {"Manipulation"}, model).tick(
         0.0, sample(0.0, SemLoc="Corridor", BattLev=80.0, ObstDist=1.0, Material="Glass")
     )
     assert isinstance(r, msgspec.Struct)
@@ -270,7 +270,7 @@ def small():
 
 def engine_for(fm, rules, deployment=(), **kw):
     model = parse_rules("import m as cdm\n" + rules, "r.rra", fm, SMALL_MEAS)
-    return Engine(fm, deployment, model, **kw)
+    return AdaptationEngine(fm, deployment, model, **kw)
 
 
 def test_rule_set_highest_priority_has_the_last_word(small):
@@ -513,7 +513,7 @@ def test_a_rule_set_runs_whole_when_any_rule_is_due(small):
 def test_quadcopter_switches_to_proploss_and_latches():
     fm = load_uvl(QC / "features.uvl")
     meas = load_yaml(QC / "measurements.yaml", MeasurementsModel)[0]
-    engine = Engine(fm, {"Hover"}, load_rules(QC / "adaptation.rra", fm, meas))
+    engine = AdaptationEngine(fm, {"Hover"}, load_rules(QC / "adaptation.rra", fm, meas))
     assert "Standard" in engine.tick(0.0, {"WorkingMotors": (4, 0.0)}).selection
     assert "Standard" in engine.tick(0.01, {}).selection  # missing: nothing changes
     r = engine.tick(0.02, {"WorkingMotors": (3, 0.02)})
@@ -558,7 +558,7 @@ def _vector(value_strategy):
 )
 def test_any_measurements_give_a_valid_selection(fig5, vectors, deployment):
     fm, model = fig5
-    engine = Engine(fm, deployment, model)
+    engine = AdaptationEngine(fm, deployment, model)
     for i, vector in enumerate(vectors):
         r = engine.tick(3.0 + i * 0.1, vector)
         assert check_selection(fm, engine.deployment | r.selection) == []
@@ -829,7 +829,7 @@ REQUESTS = st.lists(
 def reduce_engine(constraints: bool):
     text = REDUCE_UVL if constraints else REDUCE_UVL.split("constraints")[0]
     fm = parse_uvl(text, "reduce.uvl")
-    return Engine(fm, (), parse_rules("", "empty.rra", fm, None))
+    return AdaptationEngine(fm, (), parse_rules("", "empty.rra", fm, None))
 
 
 @settings(max_examples=300, deadline=None)
@@ -852,7 +852,7 @@ def test_dropped_requests_never_change_the_selection(setup, requests, constraint
 
 def test_overridden_defaults_do_not_reach_apply_requests(small, monkeypatch):
     """A rule set's default followed by an override of the same group is one request."""
-    import rra_agent.core.rules as core
+    import rra_agent.core.adaptation as core
 
     calls = []
     real = core.apply_requests
@@ -872,7 +872,7 @@ def test_overridden_defaults_do_not_reach_apply_requests(small, monkeypatch):
 def test_nothing_in_sight_gives_the_formulas_speed(fig5):
     """ObstDist = inf (no obstacle in the scan): 1 - e^(-inf) = 1, MaxVel follows the battery."""
     fm, model = fig5
-    engine = Engine(fm, ("Manipulation",), model)
+    engine = AdaptationEngine(fm, ("Manipulation",), model)
     r = engine.tick(
         1.0,
         {"SemLoc": ("RoomA", 1.0), "BattLev": (80.0, 1.0), "ObstDist": (math.inf, 1.0)},

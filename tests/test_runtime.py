@@ -43,7 +43,7 @@ def test_measurement_change_swaps_rewires_and_sets_cv_parameter(system):
     assert info.result["params"]["offset"] == pytest.approx(7.0)
     # What it now receives comes through `filtered` (offset 100 added there).
     out: list[dict] = []
-    from rra_agent.node import decode_data
+    from rra_agent.bus.data import decode_data
 
     sub = sys_.client.session.declare_subscriber(
         K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
@@ -85,7 +85,7 @@ def test_a_stop_then_start_swap_kills_the_old_node_at_its_stop_deadline(system, 
 
 def swap_to_filtered(sys_) -> dict:
     """Level 7 swaps ``filtered`` in; the status once the sink's output goes through it."""
-    from rra_agent.node import decode_data
+    from rra_agent.bus.data import decode_data
 
     out: list[dict] = []
     sub = sys_.client.session.declare_subscriber(
@@ -214,7 +214,7 @@ def test_a_standby_replacement_s_first_output_reaches_its_rewired_consumer(syste
 def first_output_through_filtered_is_the_trigger_tick_s(sys_) -> None:
     """Level 7 is set; the sink's first output through ``filtered`` must carry the tick
     that carried Level 7 (and triggered the switch), not the next one, 5 s later."""
-    from rra_agent.node import decode_data
+    from rra_agent.bus.data import decode_data
 
     out: list[dict] = []
     sub = sys_.client.session.declare_subscriber(

@@ -21,10 +21,10 @@ import yaml
 from conftest import position
 
 from rra_agent.bus import messages as m
+from rra_agent.cli.test import find_scenarios
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
-from rra_agent.models.loader import flatten_errors
+from rra_agent.package.loader import flatten_errors
 from rra_agent.scenario import expectations as x
-from rra_agent.scenario.cli import find_scenarios
 from rra_agent.scenario.model import Scenario, load_scenario
 from rra_agent.scenario.plugin import matches
 from rra_agent.scenario.runner import (

@@ -15,11 +15,10 @@ from conftest import RELAY, listening
 from conftest import run_rra as rra
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.client import BusClient, NoReply, gather, set_params, wait_until
 from rra_agent.bus.config import BusConfig, free_port, node_zid
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import open_session
-from rra_agent.cli.status import gather, set_params
+from rra_agent.bus.session import open_session
 from rra_agent.security.certs import issue
 
 K = Keys("relay_system")

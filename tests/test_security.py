@@ -39,15 +39,18 @@ from rra_agent.bus.config import (
     free_port,
     node_zid,
 )
+from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import data_publisher, open_session
+from rra_agent.bus.session import data_publisher, open_session
 from rra_agent.cli import main
 from rra_agent.deployment import deploy
 from rra_agent.engines.executor import spec_for
 from rra_agent.errors import RraError
-from rra_agent.node import decode_data, encode_data
 from rra_agent.security.acl import access_control
 from rra_agent.security.certs import issue, verify
+
+#: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
+pytestmark = pytest.mark.system
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "tests" / "data" / "relay_system"

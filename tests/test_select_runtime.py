@@ -9,6 +9,7 @@ from __future__ import annotations
 import signal
 import threading
 
+import pytest
 from conftest import RELAY_KEYS as K
 from conftest import package_copy, run_rra
 
@@ -100,6 +101,7 @@ def test_refused_overrides_are_one_line_errors(system, bus):
     assert out.returncode == 0 and "no run-time feature is forced" in out.stdout, out.stderr
 
 
+@pytest.mark.system
 def test_no_bus_at_the_endpoint_is_one_line() -> None:
     out = run_rra("select", "--system", "relay_system", "--connect", f"tcp/127.0.0.1:{free_port()}")
     assert out.returncode == 1 and "Traceback" not in out.stderr

@@ -28,8 +28,8 @@ from conftest import ROOT
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.counters import MAX_PAYLOAD, MiB
-from rra_agent.bus.runtime import open_session
-from rra_agent.node import encode_data
+from rra_agent.bus.data import encode_data
+from rra_agent.bus.session import open_session
 
 sys.path.insert(0, str(ROOT / "tools"))
 from bench_memory import descendants, pss_kib

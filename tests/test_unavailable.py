@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
+from rra_agent.core.adaptation import AdaptationEngine
 from rra_agent.core.availability import (
     implementation_key,
     requirements,
     unavailable_features,
 )
-from rra_agent.core.rules import Engine
 from rra_agent.dsl.rules import parse_rules
-from rra_agent.models.loader import load_package
+from rra_agent.package.loader import load_package
 
 ROOT = Path(__file__).resolve().parents[1]
 OS = ROOT / "scenarios" / "object_storing"
@@ -30,9 +30,9 @@ def ctx(now: float, **values):
     return {name: (value, now) for name, value in values.items()}
 
 
-def engine(pkg) -> Engine:
+def engine(pkg) -> AdaptationEngine:
     assert pkg.adaptation is not None
-    return Engine(pkg.features, pkg.manifest.default_selection, pkg.adaptation)
+    return AdaptationEngine(pkg.features, pkg.manifest.default_selection, pkg.adaptation)
 
 
 CONTEXT = {"SemLoc": "RoomA", "BattLev": 80.0, "ObstDist": 2.0, "Material": "Glass"}
@@ -84,7 +84,7 @@ def test_a_selected_feature_that_becomes_unavailable_is_left_where_the_model_all
         fm,
         pkg.measurements,
     )
-    e = Engine(fm, pkg.manifest.default_selection, rules)
+    e = AdaptationEngine(fm, pkg.manifest.default_selection, rules)
     assert "ChannelB" in e.tick(1.0, ctx(1.0, BattLev=80.0)).selection
     e.set_unavailable({"ChannelB": "radio_driver_b is unavailable: gone"})
     assert "ChannelA" in e.tick(2.0, ctx(1.0, BattLev=80.0)).selection

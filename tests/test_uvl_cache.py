@@ -138,6 +138,7 @@ def test_uvl_and_rules_parsers_come_from_the_cache(builds: list[str]) -> None:
         uvl.parse_uvl("features\n    A\n        optional\n            B\n      C\n")
 
 
+@pytest.mark.system
 def test_processes_starting_together_share_the_cache(tmp_path: Path) -> None:
     """Several processes building at once: each gets a working parser, and the folder ends up
     holding one whole cache file (written under a temporary name, then renamed into place)."""
@@ -152,6 +153,7 @@ def test_processes_starting_together_share_the_cache(tmp_path: Path) -> None:
     assert [p.suffix for p in tmp_path.iterdir()] == [".lark"]
 
 
+@pytest.mark.system
 def test_validate_imports_neither_zenoh_nor_cryptography(tmp_path: Path) -> None:
     """``rra validate`` configures only its own arguments: the modules of the other commands
     (zenoh, cryptography, the simulator) stay unimported, which keeps its start quick."""

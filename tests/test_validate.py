@@ -1,4 +1,4 @@
-"""Loading a system package and cross-reference validation (rra_agent.models.loader/validate).
+"""Loading a system package and cross-reference validation (rra_agent.package.loader/validate).
 
 Each case plants one broken reference in a copy of ``tests/data/mini`` and expects a located
 error at the planted token, with a message saying what was expected. When the UVL loader is
@@ -17,10 +17,10 @@ import pytest
 from conftest import copy_mini, plant, position
 
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
-from rra_agent.models import loader
 from rra_agent.models.features import FeatureModel
-from rra_agent.models.loader import load_package, package_root
-from rra_agent.models.validate import validate_package
+from rra_agent.package import loader
+from rra_agent.package.loader import load_package, package_root
+from rra_agent.package.validate import validate_package
 
 DATA = Path(__file__).parent / "data"
 MINI = DATA / "mini"
@@ -633,7 +633,7 @@ def test_measurement_trust_settings_are_checked_where_they_are_written(
 def test_a_measured_port_of_an_undeclared_type_is_a_warning(tmp_path: Path) -> None:
     """Samples of a type measurements.yaml does not declare can only be checked to be maps:
     `rra validate` says so at the measurement's source, and the package stays valid."""
-    from rra_agent.models.validate import measurement_warnings
+    from rra_agent.package.validate import measurement_warnings
 
     root = copy_mini(tmp_path)
     plant(root, "system.yaml", "{name: cmd_vel, direction: subscribe, type: Twist}",

@@ -29,9 +29,9 @@ from rra_agent.bus.config import free_port
 from rra_agent.cli import view
 from rra_agent.cli.commands import main
 from rra_agent.errors import RraError
-from rra_agent.models.loader import load_package
 from rra_agent.node import NodeHarness
 from rra_agent.nodes.object_storing import RobotDriver
+from rra_agent.package.loader import load_package
 from rra_agent.viz import recording
 from rra_agent.viz.blueprint import layout_of, read_blueprint
 from rra_agent.viz.rerun_log import ENV_VAR, SIM, open_logger
@@ -97,6 +97,7 @@ def object_storing_recording(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     return out
 
 
+@pytest.mark.system
 def test_object_storing_recording_carries_its_designed_views(tmp_path, monkeypatch):
     out = object_storing_recording(tmp_path, monkeypatch)
     bp = read_blueprint(out)
@@ -129,6 +130,7 @@ def test_object_storing_recording_carries_its_designed_views(tmp_path, monkeypat
     assert views["Adaptation events"].shows(paths) == {"/events", "/rules"}
 
 
+@pytest.mark.system
 def test_every_sample_is_on_the_simulation_timeline(tmp_path, monkeypatch):
     out = object_storing_recording(tmp_path, monkeypatch)
     timelines = temporal_timelines(out)

@@ -204,7 +204,7 @@ def run_system(procs, bus, run_dir: Path, *extra: str, adapt: bool) -> dict[str,
         "rra_agent", "up", str(DATA), "--run-dir", str(run_dir), "-q",
         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500", *extra, name="up",
     )  # fmt: skip
-    from rra_agent.cli.status import gather, set_params
+    from rra_agent.bus.client import gather, set_params
 
     with BusClient(bus, "relay_system") as client:
 

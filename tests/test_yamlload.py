@@ -1,4 +1,4 @@
-"""YAML model files -> Structs, every error at its file:line:col (rra_agent.models.yamlload).
+"""YAML model files -> Structs, every error at its file:line:col (rra_agent.package.yamlload).
 
 Expected positions are computed from the text by finding the planted token, never hard-coded.
 """
@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 
 from rra_agent.errors import ErrorGroup, Location, ModelError
+from rra_agent.models.manifest import Manifest
 from rra_agent.models.measurements import MeasurementsModel
-from rra_agent.models.package import Manifest
 from rra_agent.models.resolution import RuntimeResolutionModel
 from rra_agent.models.system import SystemModel
-from rra_agent.models.yamlload import YamlDoc, load_yaml, load_yaml_text, unknown_name
+from rra_agent.package.yamlload import YamlDoc, load_yaml, load_yaml_text, unknown_name
 
 F = "f.yaml"
 

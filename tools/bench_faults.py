@@ -75,10 +75,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _benchutil import median, p99, print_table
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.client import BusClient, NoReply, gather, set_params, wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.keys import Keys
-from rra_agent.cli.status import gather, set_params
 from rra_agent.engines.events import read_events
 from rra_agent.errors import RraError
 from rra_agent.host.processes import process_state

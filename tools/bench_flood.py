@@ -42,11 +42,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _benchutil import median, p99, print_table
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.client import BusClient, gather, wait_until
 from rra_agent.bus.config import BusConfig, free_port
+from rra_agent.bus.data import encode_data
 from rra_agent.bus.keys import Keys
-from rra_agent.cli.status import gather
-from rra_agent.node import encode_data
 
 ROOT = Path(__file__).resolve().parents[1]
 SYSTEM = "relay_system"

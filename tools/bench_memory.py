@@ -51,10 +51,9 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _benchutil import interrupt, print_table
 
-from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.client import BusClient, gather, wait_until
 from rra_agent.bus.config import BusConfig, free_port
-from rra_agent.cli.status import gather
-from rra_agent.models.loader import load_package
+from rra_agent.package.loader import load_package
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_PSS_MIB = 150.0
@@ -248,7 +247,7 @@ def flood_keys(client: BusClient, package: Path) -> tuple[list[str], str]:
 
 def laser_scan(size: int) -> bytes:
     """A well-formed LaserScan of about ``size`` bytes (msgpack floats are 9 bytes)."""
-    from rra_agent.node import encode_data
+    from rra_agent.bus.data import encode_data
 
     n = size // 9
     return encode_data({"frame_id": "base_laser", "angle_min": -2.0, "angle_max": 2.0,

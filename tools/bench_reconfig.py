@@ -41,8 +41,9 @@ from _benchutil import interrupt, median, p99, print_table
 from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.core import resolution as r
+from rra_agent.core.plan import diff, standby_subscriptions, subscriptions, wiring
 from rra_agent.deployment import deploy
 from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.executor import Executor, spec_for
@@ -198,7 +199,7 @@ def run_case(n: int, strategy: str, repeat: int, containers: int = 0, shared: bo
             pkg = dep.package
             hot = [c.name for c in dep.configured.components if pkg.runtime.replacement.hot(c.name)]
             ex = Executor(act, keys, pkg.runtime.replacement, default_host="local",
-                          standby_inputs=r.standby_subscriptions(dep.configured, hot))  # fmt: skip
+                          standby_inputs=standby_subscriptions(dep.configured, hot))  # fmt: skip
 
             def target(mode: str):
                 return r.resolve_runtime(dep.configured, pkg.runtime, pkg.features,
@@ -206,7 +207,7 @@ def run_case(n: int, strategy: str, repeat: int, containers: int = 0, shared: bo
 
             current = msgspec.structs.replace(target("A"), components=[], connections=[])
             t0 = time.perf_counter()
-            out = ex.execute(r.diff(current, target("A")))
+            out = ex.execute(diff(current, target("A")))
             assert out.ok, out.error
             current = target("A")
             if standby:
@@ -219,7 +220,7 @@ def run_case(n: int, strategy: str, repeat: int, containers: int = 0, shared: bo
             for _ in range(repeat):
                 mode = "B" if mode == "A" else "A"
                 tgt = target(mode)
-                out = ex.execute(r.diff(current, tgt))
+                out = ex.execute(diff(current, tgt))
                 assert out.ok, out.error
                 current = tgt
                 times.append(out.seconds)
@@ -235,9 +236,9 @@ def run_case(n: int, strategy: str, repeat: int, containers: int = 0, shared: bo
 
 def standby_specs(dep, keys, variant: str) -> list:
     """The alternatives ``w<i><variant>``, wired as the configured model connects them."""
-    subs = r.subscriptions(dep.configured)
+    subs = subscriptions(dep.configured)
     return [
-        spec_for(keys, c, **r.wiring(c, subs), default_host="local")
+        spec_for(keys, c, **wiring(c, subs), default_host="local")
         for c in dep.configured.components
         if c.name.startswith("w") and c.name.endswith(variant)
     ]

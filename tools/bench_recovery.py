@@ -51,7 +51,7 @@ from _benchutil import median, p99, print_table
 
 from rra_agent import trace
 from rra_agent.demo import FAULT, RECORD, SCENARIO, recovery_report
-from rra_agent.models.loader import load_package
+from rra_agent.package.loader import load_package
 from rra_agent.scenario.model import load_scenario
 from rra_agent.scenario.runner import run_case
 

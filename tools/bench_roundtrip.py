@@ -83,7 +83,7 @@ from rra_agent.bus.config import ENV_VAR as BUS_ENV  # noqa: E402
 from rra_agent.bus.config import BusConfig, free_port  # noqa: E402
 from rra_agent.bus.counters import MAX_PAYLOAD  # noqa: E402
 from rra_agent.bus.keys import Keys  # noqa: E402
-from rra_agent.node import SPEC_ENV  # noqa: E402
+from rra_agent.node.process import SPEC_ENV  # noqa: E402
 
 TARGET = 1.15
 SYSTEM = "bench"
@@ -398,8 +398,9 @@ def per_sample_us(fn: Callable[[Any], None], sample: Any, n: int = 20000, reps: 
 def in_process(session: zenoh.Session, impl: str, n: int = 20000) -> dict[str, float]:
     """Hot-cache cost per sample of each mode's callback (the SDK's: `ZenohTransport`'s, with
     a `NodeCore` running ``impl``), each publishing on a key nobody listens to."""
-    from rra_agent.bus.runtime import ZenohTransport
-    from rra_agent.node import NodeCore, load_node_class
+    from rra_agent.node.core import NodeCore
+    from rra_agent.node.loading import load_node_class
+    from rra_agent.node.runtime import ZenohTransport
 
     sample = _Sample(zenoh.ZBytes(make_payload(1)), zenoh.ZBytes(m.pack_stamp(time.time())))
     key = KEYS.data("inproc/out")

@@ -31,14 +31,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import rra_agent.core.rules as rules_core  # noqa: E402
+import rra_agent.core.adaptation as rules_core  # noqa: E402
+from rra_agent.core.adaptation import AdaptationEngine  # noqa: E402
 from rra_agent.core.conflicts import check_conflicts  # noqa: E402
-from rra_agent.core.rules import Engine  # noqa: E402
 from rra_agent.dsl.rules import load_rules, parse_rules  # noqa: E402
 from rra_agent.dsl.uvl import load_uvl  # noqa: E402
 from rra_agent.models.features import Attribute, Feature, FeatureModel, Group  # noqa: E402
 from rra_agent.models.measurements import Measurement, MeasurementsModel  # noqa: E402
-from rra_agent.models.yamlload import load_yaml  # noqa: E402
+from rra_agent.package.yamlload import load_yaml  # noqa: E402
 
 N_VP, N_OPT, N_CV, N_MEAS, N_RULES = 200, 100, 20, 200, 1000
 ROOMS = ("RoomA", "RoomB", "Corridor")
@@ -78,9 +78,9 @@ def fig5(ticks: int) -> dict[str, tuple[float, ...]]:
     steady = [vector(i, contexts[5]) for i in range(ticks)]
     switching = [vector(i, contexts[i % len(contexts)]) for i in range(ticks)]
     return {
-        "Fig. 5, steady context": run_split(Engine(fm, {"Manipulation"}, model), steady),
+        "Fig. 5, steady context": run_split(AdaptationEngine(fm, {"Manipulation"}, model), steady),
         "Fig. 5, context switching every tick": run_split(
-            Engine(fm, {"Manipulation"}, model), switching
+            AdaptationEngine(fm, {"Manipulation"}, model), switching
         ),
     }
 
@@ -263,7 +263,9 @@ class _Timed:
             self.spent += time.perf_counter_ns() - t0
 
 
-def run_split(engine: Engine, vectors: list[dict], warmup: int = 100) -> tuple[float, ...]:
+def run_split(
+    engine: AdaptationEngine, vectors: list[dict], warmup: int = 100
+) -> tuple[float, ...]:
     """Median and p99 of the tick, and median of the tick without apply_requests."""
     timer = _Timed()
     rules_core.apply_requests = timer  # type: ignore[assignment]
@@ -294,7 +296,7 @@ def generated(ticks: int, seed: int) -> dict[str, tuple[float, ...]]:
     t0 = time.perf_counter()
     model = parse_rules(text, "<generated>.rra", fm, meas)
     t1 = time.perf_counter()
-    Engine(fm, (), model)
+    AdaptationEngine(fm, (), model)
     t2 = time.perf_counter()
     found = check_conflicts(model, fm)
     t3 = time.perf_counter()
@@ -308,7 +310,7 @@ def generated(ticks: int, seed: int) -> dict[str, tuple[float, ...]]:
     for drift, label in ((True, "drifting values"), (False, "random jumps")):
         vectors = measurement_stream(random.Random(seed + 1), ticks, drift)
         out[f"{N_RULES} rules, 20/{N_MEAS} measurements new per tick, {label}"] = run_split(
-            Engine(fm, (), model), vectors
+            AdaptationEngine(fm, (), model), vectors
         )
     return out
 

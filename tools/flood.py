@@ -12,8 +12,8 @@ import sys
 import time
 
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.runtime import open_session
-from rra_agent.node import encode_data
+from rra_agent.bus.data import encode_data
+from rra_agent.bus.session import open_session
 
 
 def main(argv: list[str]) -> int:

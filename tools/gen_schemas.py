@@ -19,8 +19,8 @@ from typing import Any
 
 import msgspec
 
+from rra_agent.models.manifest import Manifest
 from rra_agent.models.measurements import MeasurementsModel
-from rra_agent.models.package import Manifest
 from rra_agent.models.resolution import DeploymentResolutionModel, RuntimeResolutionModel
 from rra_agent.models.system import SystemModel
 from rra_agent.scenario.model import Scenario

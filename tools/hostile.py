@@ -40,7 +40,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import MAX_PAYLOAD
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.models.system import Command
 
 JUNK = [b"", b"\x00", b"\xc1\xff", b"\x81\xa1t\xa3zzz", bytes(range(256)), b"\x92\xa3sel\xc0"]

@@ -11,10 +11,12 @@ one system (``--system`` is needed only when several run at the endpoint).
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
@@ -26,7 +28,7 @@ from rra_agent.bus.config import (
     no_system,
 )
 from rra_agent.bus.keys import ROOT, Keys
-from rra_agent.bus.runtime import NoPeer, open_session
+from rra_agent.bus.session import NoPeer, open_session
 from rra_agent.errors import RraError
 
 _REPLY = m.Codec[m.Reply](m.Reply)
@@ -181,3 +183,178 @@ def wait_until(
         if time.monotonic() >= deadline:
             raise TimeoutError(f"timed out after {timeout:g} s waiting for {what}")
         time.sleep(interval)
+
+
+# ---- a system's status, parameters and leaders, as the tools read them ----------
+def _leader_token(client: BusClient, role: str) -> str:
+    return f"{client.keys.lead(role)}/**"
+
+
+def wait_for_leader(client: BusClient, timeout: float) -> None:
+    """Until the Resolution Engine leader's token has reached this session (TimeoutError)."""
+    wait_until(
+        lambda: list(
+            client.session.liveliness().get(_leader_token(client, "resolution"), timeout=0.5)
+        ),
+        timeout,
+        "the resolution engine",
+        interval=0.02,
+    )
+
+
+def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
+    """The engine's status, every host's nodes and every process's counters. An operator
+    with a certificate (``client.restricted``) may not call host or node control: its view
+    is the engine's (what the host agents last reported to it) and the engines' counters."""
+    engine = engine_status(client, timeout)
+    eng = engine or {}
+    present = {
+        str(r.ok.key_expr).rsplit("/", 1)[-1]
+        for r in client.session.liveliness().get(client.keys.host_alive_all, timeout=1)
+        if r.ok is not None
+    }
+    nodes = [] if client.restricted else _listed_nodes(client, sorted(present), timeout)
+    listed = {n["node"] for n in nodes}
+    unreachable = set(eng.get("unreachable", []))
+    for name, st in (eng.get("observed") or {}).items():
+        if name in listed:
+            continue
+        # On a host the engine cannot reach now: as it last heard of it.
+        state = f"{st['state']}?" if st.get("host") in unreachable else st["state"]
+        nodes.append({"node": name, **st, "state": state})
+    families = ("engine",) if client.restricted else ("node", "host")
+    hosts = sorted({*eng.get("hosts", {}), *present})
+    return {
+        "engine": engine,
+        "nodes": nodes,
+        # The model's hosts as the engine sees them (an unreachable one too), and any other.
+        "hosts": hosts,
+        "host_agents": _host_agents(client, hosts, present, unreachable, nodes, timeout),
+        "stats": process_stats(client, timeout, families=families),
+    }
+
+
+def _host_agents(
+    client: BusClient,
+    hosts: list[str],
+    present: set[str],
+    unreachable: set[str],
+    nodes: list[dict[str, Any]],
+    timeout: float,
+) -> list[dict[str, Any]]:
+    """Each host agent: whether it is up, its router's endpoints (its answer to a ``Ping``;
+    an operator with a certificate may not ask) and how many nodes run on it."""
+    out = []
+    for host in hosts:
+        info: dict[str, Any] = {}
+        if host in present and not client.restricted:
+            with contextlib.suppress(NoReply):
+                reply = client.host(host, m.Ping(), timeout)
+                if isinstance(reply, m.Ok) and isinstance(reply.result, dict):
+                    info = reply.result
+        live = [n for n in nodes if n.get("host") == host and n.get("state") in LIVE_STATES]
+        state = "up" if host in present else "unreachable" if host in unreachable else "absent"
+        out.append(
+            {
+                "host": host,
+                "state": state,
+                "pid": info.get("pid"),
+                "listen": info.get("listen", []),
+                "connect": info.get("connect", []),
+                "nodes": len(live),
+            }
+        )
+    return out
+
+
+#: Node states in which a process exists (``rra status`` counts them per host).
+LIVE_STATES = frozenset({"STARTING", "RUNNING", "UNRESPONSIVE", "STOPPING"})
+
+
+def engine_status(client: BusClient, timeout: float) -> dict[str, Any] | None:
+    # A client just connected has not been told about the engine yet: query it once the
+    # leader's token has reached this session (its queryable was declared before it).
+    with contextlib.suppress(TimeoutError):
+        wait_for_leader(client, timeout)
+    try:
+        reply = client.request(client.keys.engine_ctl("resolution"), m.Status(), timeout)
+    except NoReply:
+        return None
+    return reply.result if isinstance(reply, m.Ok) else None
+
+
+def _listed_nodes(client: BusClient, hosts: list[str], timeout: float) -> list[dict[str, Any]]:
+    """Every node the host agents of ``hosts`` supervise (``ListNodes``)."""
+    out: list[dict[str, Any]] = []
+    for host in hosts:
+        try:
+            reply = client.host(host, m.ListNodes(), timeout)
+        except NoReply:
+            continue
+        if isinstance(reply, m.Ok):
+            out.extend(reply.result)
+    return out
+
+
+def process_stats(
+    client: BusClient, timeout: float = 1.0, families: tuple[str, ...] = ("node", "host")
+) -> dict[str, dict[str, Any]]:
+    """Every process's counters (`ProcessStats`) by name: one query to all at once."""
+    out: dict[str, dict[str, Any]] = {}
+    codec = m.Codec[m.Reply](m.Reply)
+    for key in (f"{client.keys.prefix}/{family}/*/ctl" for family in families):
+        for reply in client.session.get(
+            key,
+            payload=m.Codec[Any](Any).encode(m.Stats()),
+            timeout=timeout,
+            consolidation=zenoh.ConsolidationMode.NONE,
+        ):
+            if reply.ok is None:
+                continue
+            try:
+                answer = codec.decode(reply.ok.payload.to_bytes())
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+                stats = answer.result
+                out[f"{stats.get('role')}:{stats.get('name')}"] = stats
+    return out
+
+
+def set_params(
+    client: BusClient,
+    node: str,
+    values: dict[str, Any],
+    reset: Sequence[str] = (),
+    timeout: float = 5.0,
+) -> dict[str, Any]:
+    """Set a node's parameters as an operator: through the Run-time Resolution Engine, so
+    they are checked, become part of the Run-time Configured System Model and survive
+    restarts. Raises `RraError` with the engine's refusal."""
+    try:
+        wait_for_leader(client, timeout)
+    except TimeoutError:
+        raise RraError(
+            f"no Run-time Resolution Engine leads system {client.keys.system!r}"
+        ) from None
+    request = m.SetParam(node=node, params=values, reset=list(reset))
+    reply = client.request(client.keys.engine_ctl("resolution"), request, timeout)
+    if isinstance(reply, m.Err):
+        raise RraError(f"{node}: {reply.message}")
+    return reply.result  # type: ignore[union-attr]
+
+
+def engine_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[str, Any]:
+    """A node's parameters in the Run-time Configured System Model (the engine's state)."""
+    try:
+        wait_for_leader(client, timeout)
+        reply = client.request(client.keys.engine_ctl("resolution"), m.GetState(), timeout)
+    except (TimeoutError, NoReply):
+        raise RraError(f"no Run-time Resolution Engine leads {client.keys.system!r}") from None
+    if not isinstance(reply, m.Ok):
+        raise RraError(f"{node}: {reply.message}")  # type: ignore[union-attr]
+    state = msgspec.convert(reply.result, m.EngineState)
+    spec = next((s for s in (*state.running, *state.standby) if s.name == node), None)
+    if spec is None:
+        raise RraError(f"no running node {node!r} in system {client.keys.system!r}")
+    return dict(spec.params)

@@ -334,7 +334,7 @@ class BusConfig(FrozenModel, frozen=True):
 
     @classmethod
     def load(cls, path: str | Path) -> BusConfig:
-        from rra_agent.models.yamlload import load_yaml
+        from rra_agent.package.yamlload import load_yaml
 
         cfg, _ = load_yaml(path, cls)
         return cfg

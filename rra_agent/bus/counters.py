@@ -22,10 +22,14 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple, TypeVar
+
+import msgspec
 
 from rra_agent.bus import messages as m
 from rra_agent.models.system import SystemModel
+
+T = TypeVar("T")
 
 KiB = 1024
 MiB = 1024 * KiB
@@ -68,6 +72,35 @@ HEADERS = 64 * KiB
 
 def too_large(family: str, size: int) -> bool:
     return size > MAX_PAYLOAD[family]
+
+
+class Refused(NamedTuple):
+    """A payload refused before it was decoded: ``too_large`` or ``malformed``, and why."""
+
+    code: str
+    detail: str
+
+    def err(self, what: str = "request") -> m.Err:
+        """The reply that tells the sender (a query's answer)."""
+        text = f"{what} too large ({self.detail})" if self.code == "too_large" else (
+            f"malformed {what}: {self.detail}"
+        )  # fmt: skip
+        return m.Err(message=text, code=self.code)
+
+
+def receive(payload: Any, family: str, codec: m.Codec[T]) -> T | Refused:
+    """The preamble of everything a process receives: the size limit of its key family
+    (``MAX_PAYLOAD``), then the decode with the channel's one reused decoder. ``payload``:
+    a Zenoh payload (or None: empty) or bytes. The caller counts a `Refused` and, for a
+    query, answers it (`Refused.err`)."""
+    raw = b"" if payload is None else payload if isinstance(payload, bytes) else payload.to_bytes()
+    if too_large(family, len(raw)):
+        limit = MAX_PAYLOAD[family]
+        return Refused("too_large", f"{len(raw)} bytes, more than the {limit} of {family}")
+    try:
+        return codec.decode(raw)
+    except (msgspec.DecodeError, msgspec.ValidationError) as e:
+        return Refused("malformed", str(e))
 
 
 def data_limit(max_bytes: int | None) -> int:

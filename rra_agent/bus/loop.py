@@ -18,7 +18,7 @@ driver, this is for sparse events only: a job runs inline only while the inline 
 the last `WINDOW` seconds is under `INLINE_SHARE`, so a flood falls back to the hand-off,
 where callers coalesce, and a Zenoh callback thread is never held for long (its channel
 is bounded: a blocked callback stalls the whole session once ~256 samples wait). The loop
-writes the process's heartbeat (`rra_agent.host.heartbeat`) while it runs, so a process whose
+writes the process's heartbeat (`rra_agent.bus.heartbeat`) while it runs, so a process whose
 main thread is stuck stops beating.
 """
 
@@ -35,7 +35,7 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from rra_agent.host.heartbeat import Heartbeat
+from rra_agent.bus.heartbeat import Heartbeat
 
 #: Work items waiting at most; more are refused.
 INBOX = 10_000

@@ -162,7 +162,7 @@ class AdaptationEvent(Msg, tag="event"):
 class Failure(
     msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True, frozen=True
 ):
-    """Why a node failed: the exception its code raised (`rra_agent.failure.describe`), as
+    """Why a node failed: the exception its code raised (`rra_agent.bus.failure.describe`), as
     the node reported it to its host agent, or, for an external command, which reports
     nothing, the end of its output (``type`` empty)."""
 

@@ -13,21 +13,12 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-
-import msgspec
-import yaml
 
 from rra_agent import __version__
 from rra_agent.errors import LocatedError, RraError
-from rra_agent.models.loader import (
-    SystemPackage,
-    error_line,
+from rra_agent.package.loader import (
     flatten_errors,
-    load_package,
-    package_root,
 )
-from rra_agent.models.system import SystemModel
 
 
 @dataclass(frozen=True)
@@ -54,155 +45,21 @@ def lazy(target: str) -> Callable[[argparse.Namespace], int]:
     return run
 
 
-# ---- rra validate ------------------------------------------------------------------------
-def _configure_validate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("package", metavar="PKG", help="system package folder (or its rra.yaml)")
-
-
-def _run_validate(args: argparse.Namespace) -> int:
-    """Print every problem of a package as ``file:line:col: message``; 1 if there is any."""
-    from rra_agent.models.validate import validate_package
-
-    package_root(args.package)  # a missing folder is a plain error, not a model problem
-    try:
-        pkg = load_package(args.package, validate=False)
-    except RraError as e:
-        errors = flatten_errors(e)
-    else:
-        errors = list(validate_package(pkg))
-    for err in errors:
-        print(error_line(err))
-    if errors:
-        print(f"{args.package}: {len(errors)} error(s)", file=sys.stderr)
-        return 1
-    from rra_agent.dsl.uvl import uvl_warnings
-    from rra_agent.models.validate import measurement_warnings
-
-    for warning in uvl_warnings(pkg.features):  # UVL that the feature reasoning ignores
-        print(warning)
-    for mwarning in measurement_warnings(pkg):  # sources whose samples cannot be typed
-        print(mwarning)
-    print(f"{args.package}: ok ({_summary(pkg)})")
-    return 0
-
-
-def _summary(pkg: SystemPackage) -> str:
-    fm, system, meas = pkg.features, pkg.system, pkg.measurements
-    parts = [
-        _n(len(fm.features), "feature") + f" ({len(fm.runtime_features())} run-time)",
-        _n(len(system.components), "component"),
-        _n(len(system.connections), "connection"),
-        _n(len(meas.data_types), "data type"),
-        _n(len(meas.measurements), "measurement"),
-    ]
-    if pkg.adaptation is not None:
-        rules = _count_rules(pkg.adaptation)
-        parts.append(_n(rules, "rule") if rules is not None else "adaptation rules")
-    return ", ".join(parts)
-
-
-def _count_rules(adaptation: object) -> int | None:
-    rules = getattr(adaptation, "rules", None)
-    if callable(rules):
-        return sum(1 for _ in rules())
-    return len(rules) if isinstance(rules, Sequence) else None
-
-
-def _n(count: int, noun: str) -> str:
-    return f"{count} {noun}{'' if count == 1 else 's'}"
-
-
-# ---- rra resolve -------------------------------------------------------------------------
-def _configure_resolve(p: argparse.ArgumentParser) -> None:
-    p.add_argument("package", metavar="PKG", help="system package folder (or its rra.yaml)")
-    p.add_argument(
-        "--select",
-        "-s",
-        action="append",
-        default=[],
-        metavar="F1,F2",
-        help="deployment-time features to select (default: the manifest's default_selection)",
-    )
-    p.add_argument("--format", "-f", choices=("yaml", "json"), default="yaml")
-    p.add_argument("--output", "-o", metavar="FILE", help="write to FILE instead of stdout")
-
-
-def _run_resolve(args: argparse.Namespace) -> int:
-    """Print the Deployment-time Configured System Model for a selection."""
-    from rra_agent.core.features import complete_deployment
-    from rra_agent.core.resolution import resolve_deployment
-
-    pkg = load_package(args.package)
-    names = split_selection(args.select) or list(pkg.manifest.default_selection)
-    selection = complete_deployment(pkg.features, names)
-    configured = resolve_deployment(pkg.system, pkg.deployment, pkg.features, selection)
-    ordered = [f for f in pkg.features.features if f in selection]
-    text = render_system(configured, args.format, f"selection: {', '.join(ordered)}")
-    if args.output:
-        Path(args.output).write_text(text, encoding="utf-8")
-        print(f"wrote {args.output}", file=sys.stderr)
-    else:
-        sys.stdout.write(text)
-    return 0
-
-
-def split_selection(values: Sequence[str]) -> list[str]:
-    """``["A,B", "C"]`` -> ``["A", "B", "C"]`` (blank items dropped)."""
-    return [name.strip() for v in values for name in v.split(",") if name.strip()]
-
-
-def render_system(system: SystemModel, fmt: str, note: str | None = None) -> str:
-    """A system model as YAML (with ``note`` as a leading comment) or as JSON."""
-    if fmt == "json":
-        return msgspec.json.format(msgspec.json.encode(system), indent=2).decode() + "\n"
-    body = yaml.safe_dump(
-        msgspec.to_builtins(system), sort_keys=False, allow_unicode=True, width=100
-    )
-    header = f"# Deployment-time Configured System Model of '{system.system}'\n"
-    return header + (f"# {note}\n" if note else "") + body
-
-
-# ---- the command table and main ----------------------------------------------------------
-# ---- rra check ---------------------------------------------------------------------------
-def _configure_check(p: argparse.ArgumentParser) -> None:
-    p.add_argument("package", metavar="PKG", help="system package folder (or its rra.yaml)")
-
-
-def _run_check(args: argparse.Namespace) -> int:
-    """Pairs of rules outside one rule set that can fire together with opposite effects."""
-    from rra_agent.core.conflicts import check_conflicts
-
-    pkg = load_package(args.package)
-    if pkg.adaptation is None:
-        print(f"{args.package}: no adaptation model to check")
-        return 0
-    conflicts = check_conflicts(pkg.adaptation, pkg.features)
-    for c in conflicts:
-        print(c.render())
-    certain = sum(c.certain for c in conflicts)
-    print(
-        f"{args.package}: {certain} conflict(s), {len(conflicts) - certain} possible "
-        "conflict(s) the analysis could not rule out",
-        file=sys.stderr,
-    )
-    return 1 if certain else 0
-
-
 COMMANDS: dict[str, Command] = {
     "validate": Command(
         "check every model of a package and their cross-references",
-        _configure_validate,
-        _run_validate,
+        lambda p: _configure("rra_agent.cli.validate:configure", p),
+        lazy("rra_agent.cli.validate:run"),
     ),
     "resolve": Command(
         "print the Deployment-time Configured System Model for a feature selection",
-        _configure_resolve,
-        _run_resolve,
+        lambda p: _configure("rra_agent.cli.resolve:configure", p),
+        lazy("rra_agent.cli.resolve:run"),
     ),
     "check": Command(
         "static conflict analysis of the adaptation rules (exit 1 on a certain conflict)",
-        _configure_check,
-        _run_check,
+        lambda p: _configure("rra_agent.cli.check:configure", p),
+        lazy("rra_agent.cli.check:run"),
     ),
     "up": Command(
         "run a system on this machine until Ctrl-C (engines and nodes as Zenoh peers)",
@@ -216,8 +73,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "events": Command(
         "follow the adaptation events of a running system (or print an events.jsonl)",
-        lambda p: _configure("rra_agent.cli.status:configure_events", p),
-        lazy("rra_agent.cli.status:run_events"),
+        lambda p: _configure("rra_agent.cli.events:configure_events", p),
+        lazy("rra_agent.cli.events:run_events"),
     ),
     "demo": Command(
         "the paper's evaluation: a quadcopter loses a motor, RRA swaps its controller",
@@ -226,8 +83,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "param": Command(
         "print or set the parameters of a running node (NAME=VALUE ...)",
-        lambda p: _configure("rra_agent.cli.status:configure_param", p),
-        lazy("rra_agent.cli.status:run_param"),
+        lambda p: _configure("rra_agent.cli.param:configure_param", p),
+        lazy("rra_agent.cli.param:run_param"),
     ),
     "select": Command(
         "force run-time features on or off (FEATURE=on|off|auto), or print the forced ones",
@@ -236,8 +93,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "retry": Command(
         "re-admit unavailable implementations (COMPONENT ...; none: all) and try them again",
-        lambda p: _configure("rra_agent.cli.select:configure_retry", p),
-        lazy("rra_agent.cli.select:run_retry"),
+        lambda p: _configure("rra_agent.cli.retry:configure_retry", p),
+        lazy("rra_agent.cli.retry:run_retry"),
     ),
     "view": Command(
         "open a recording (FILE.rrd or a run folder) in the Rerun viewer of this environment",
@@ -251,8 +108,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "test": Command(
         "run scenarios (*.scenario.yaml) headless and print the verdict of each expectation",
-        lambda p: _configure("rra_agent.scenario.cli:configure", p),
-        lazy("rra_agent.scenario.cli:run"),
+        lambda p: _configure("rra_agent.cli.test:configure", p),
+        lazy("rra_agent.cli.test:run"),
     ),
     "certs": Command(
         "make the system CA and the mTLS certificates of every host and role",

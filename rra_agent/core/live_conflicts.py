@@ -1,6 +1,6 @@
 """Run-time conflicts as they start and end: pure logic, no I/O, no clock.
 
-The engine (`rra_agent.core.rules.Engine`) reports, on every tick, the conflicts *in force*
+The engine (`rra_agent.core.adaptation.Engine`) reports, on every tick, the conflicts *in force*
 (``TickResult.active``): two evaluation units whose latest wishes on one target (a feature,
 the alternatives of a group, a CV attribute) differ, a wish lasting until its unit runs
 again. `ConflictTracker` turns that per-tick set into transitions: a conflict *starts* the
@@ -15,7 +15,7 @@ from typing import Any
 
 import msgspec
 
-from rra_agent.core.rules import ConflictRecord, FiredRule
+from rra_agent.core.adaptation import ConflictRecord, FiredRule
 
 
 class LiveConflict(msgspec.Struct, frozen=True, kw_only=True):

@@ -38,7 +38,7 @@ from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import CONTROL_QOS
+from rra_agent.bus.session import CONTROL_QOS
 from rra_agent.engines.executor import Ctl, StepFailed, apply_request
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)

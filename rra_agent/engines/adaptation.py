@@ -1,7 +1,7 @@
 """The Adaptation Engine process (paper Sec. III-D).
 
 It listens to every Context Dependent Measurement on ``rra/<system>/ctx/*``, evaluates the
-Adaptation Model with the pure engine (`rra_agent.core.rules.Engine`) on each new measurement
+Adaptation Model with the pure engine (`rra_agent.core.adaptation.Engine`) on each new measurement
 (rules with ``period 0``) and periodically (rules with a period, every ``tick`` seconds), and
 publishes the run-time feature selection and the Continuous Variability values on
 ``rra/<system>/selection``: at once when they change, and as a heartbeat every
@@ -16,7 +16,7 @@ a conflict starts and once when it ends; every `Selection` carries the conflicts
 Operators force run-time features on or off (``rra select``, `ForceFeatures` on
 ``engine/adaptation/ctl``): recorded as an ``override`` event, respected by the rules until
 released, and carried in every `Selection` (``forced``), which the Run-time Resolution
-Engine keeps in its state: a restarted Adaptation Engine resumes with them.
+AdaptationEngine keeps in its state: a restarted Adaptation Engine resumes with them.
 
 It never publishes a default selection over a running system: before it evaluates anything
 it resumes from the system's current selection and CV values, asked from the Run-time
@@ -35,15 +35,15 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent import trace
+from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import too_large
+from rra_agent.bus.counters import Refused, receive
+from rra_agent.core.adaptation import AdaptationEngine, TickResult
 from rra_agent.core.availability import requirements, unavailable_features
-from rra_agent.core.context import measurement_problem
 from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
+from rra_agent.core.monitor import measurement_problem
 from rra_agent.core.overrides import OverrideError
-from rra_agent.core.rules import Engine, TickResult
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
@@ -60,7 +60,7 @@ _REPLY = m.Codec[m.Reply](m.Reply)
 _ANY = m.Codec[Any](Any)
 
 
-class AdaptationProcess(EngineProcess):
+class AdaptationEngineProcess(EngineProcess):
     role = NAME
 
     def __init__(
@@ -80,7 +80,7 @@ class AdaptationProcess(EngineProcess):
         self.tick_period = tick
         self.heartbeat = heartbeat
         self.resume_timeout = resume_timeout
-        self.engine = Engine(dep.package.features, dep.selection, dep.package.adaptation)
+        self.engine = AdaptationEngine(dep.package.features, dep.selection, dep.package.adaptation)
         self.measurements: dict[str, tuple[object, float]] = {}
         #: The measurements of the model: a value on ``ctx/*`` is checked against its own.
         self.declared = {meas.name: meas for meas in dep.package.measurements.measurements}
@@ -105,15 +105,9 @@ class AdaptationProcess(EngineProcess):
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
-        if too_large("ctx", len(raw)):
-            self.drop("too_large", f"measurement of {len(raw)} bytes")
-            return
-        try:
-            msg = _CTX.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.drop("malformed", f"measurement: {e}")
-            return
+        msg = receive(sample.payload, "ctx", _CTX)
+        if isinstance(msg, Refused):
+            return self.drop(msg.code, f"measurement: {msg.detail}")
         problem = measurement_problem(self.declared.get(msg.name), msg.value)
         if problem is not None:  # forged on the bus: the Context Monitor never sends these
             self.refuse(problem[0], f"measurement {msg.name}: {problem[1]}")
@@ -128,13 +122,9 @@ class AdaptationProcess(EngineProcess):
                 self._scheduled = False
 
     def _on_selection(self, sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
-        if too_large("selection", len(raw)):
-            return
-        try:
-            msg = _SEL.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            return
+        msg = receive(sample.payload, "selection", _SEL)
+        if isinstance(msg, Refused):
+            return self.drop(msg.code, f"selection: {msg.detail}")
         if not isinstance(msg, m.Selection) or msg.fence is None:
             return
         if self.election is not None and msg.fence.instance == self.election.instance:
@@ -149,15 +139,9 @@ class AdaptationProcess(EngineProcess):
     def _on_state(self, sample: zenoh.Sample) -> None:
         """The Run-time Resolution Engine leader's state: which implementations are
         unavailable (only its live leader's state counts)."""
-        raw = sample.payload.to_bytes()
-        if too_large("state", len(raw)):
-            self.drop("too_large", f"engine state of {len(raw)} bytes")
-            return
-        try:
-            state = _STATE.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.drop("malformed", f"engine state: {e}")
-            return
+        state = receive(sample.payload, "state", _STATE)
+        if isinstance(state, Refused):
+            return self.drop(state.code, f"engine state: {state.detail}")
         if self.resolution is None or not self.resolution.is_leader(state.fence):
             self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
             return
@@ -498,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     dep, bus, host, name = setup
     try:
-        proc = AdaptationProcess(
+        proc = AdaptationEngineProcess(
             dep, bus, host=host, name=name, tick=args.tick, heartbeat=args.heartbeat
         )
     except ValueError as e:
@@ -509,3 +493,6 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+__getattr__ = _compat.renamed(__name__)  # old names, for one release (docs/api.md)

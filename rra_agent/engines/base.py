@@ -28,10 +28,10 @@ import zenoh
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import Counters, RateLimitedLog, too_large
+from rra_agent.bus.counters import Counters, RateLimitedLog, Refused, receive
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.loop import MainLoop
-from rra_agent.bus.runtime import beat_period, open_session
+from rra_agent.bus.session import beat_period, open_session
 from rra_agent.deployment import Deployment
 from rra_agent.engines.election import Election
 
@@ -136,15 +136,10 @@ class EngineProcess:
 
     # ---- control endpoints (Zenoh thread) ----------------------------------------------
     def _on_engine_query(self, query: zenoh.Query) -> None:
-        raw = query.payload.to_bytes() if query.payload is not None else b""
-        if too_large("engine_ctl", len(raw)):
-            self.drop("too_large", f"engine request of {len(raw)} bytes")
-            return self._reply(query, m.Err(message="request too large", code="too_large"))
-        try:
-            req = _REQ.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.drop("malformed", f"engine request: {e}")
-            return self._reply(query, m.Err(message=f"malformed request: {e}", code="malformed"))
+        req = receive(query.payload, "engine_ctl", _REQ)
+        if isinstance(req, Refused):
+            self.drop(req.code, f"engine request: {req.detail}")
+            return self._reply(query, req.err())
         self.counters.received += 1
         match req:
             case m.Status() | m.Describe():

@@ -55,7 +55,16 @@ import msgspec
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.messages import NodeSpec, ParamDecl, PortSpec
-from rra_agent.core import resolution as r
+from rra_agent.core.plan import (
+    Plan,
+    PlanStep,
+    Rewire,
+    SetImplementation,
+    SetParameters,
+    StartComponent,
+    StopComponent,
+    SwapComponent,
+)
 from rra_agent.errors import RraError
 from rra_agent.models.resolution import PRE_STARTED, Replacement
 from rra_agent.models.system import Component
@@ -228,7 +237,7 @@ def _outputs(spec: NodeSpec) -> set[str]:
 
 
 def plan_units(
-    steps: tuple[r.PlanStep, ...], running: Mapping[str, NodeSpec], data_key: Callable[[str], str]
+    steps: tuple[PlanStep, ...], running: Mapping[str, NodeSpec], data_key: Callable[[str], str]
 ) -> list[int]:
     """The unit of each step (an index per step; steps of one unit share it).
 
@@ -258,14 +267,14 @@ def plan_units(
             if name in owner:
                 join(i, owner[name])
             owner[name] = i
-        if isinstance(s, r.StartComponent | r.SwapComponent | r.SetImplementation):
+        if isinstance(s, StartComponent | SwapComponent | SetImplementation):
             for t in s.outputs.values():
                 launched[data_key(t)] = i
             wants.append((i, {data_key(t) for ts in s.inputs.values() for t in ts}, set()))
-        if isinstance(s, r.StopComponent | r.SwapComponent) and s.component in running:
+        if isinstance(s, StopComponent | SwapComponent) and s.component in running:
             for k in _outputs(running[s.component]):
                 stopped[k] = i
-        if isinstance(s, r.Rewire):
+        if isinstance(s, Rewire):
             new = {data_key(t) for t in s.topics}
             spec = running.get(s.component)
             old = set(spec.ports[s.port].keys) if spec and s.port in spec.ports else set()
@@ -281,28 +290,28 @@ def plan_units(
     return [roots.setdefault(find(i), len(roots)) for i in range(len(steps))]
 
 
-def _structural(s: r.PlanStep) -> tuple[str, ...]:
+def _structural(s: PlanStep) -> tuple[str, ...]:
     """The components whose presence or wiring a step changes (none for parameters)."""
-    if isinstance(s, r.SwapComponent):
+    if isinstance(s, SwapComponent):
         return (s.component, s.replacement)
-    if isinstance(s, r.SetParameters):
+    if isinstance(s, SetParameters):
         return ()
     return (s.component,)
 
 
-def describe_step(s: r.PlanStep) -> str:
+def describe_step(s: PlanStep) -> str:
     match s:
-        case r.SwapComponent(component=old, replacement=new):
+        case SwapComponent(component=old, replacement=new):
             return f"swap {old} -> {new}"
-        case r.StartComponent(component=c):
+        case StartComponent(component=c):
             return f"start {c}"
-        case r.StopComponent(component=c):
+        case StopComponent(component=c):
             return f"stop {c}"
-        case r.SetImplementation(component=c):
+        case SetImplementation(component=c):
             return f"restart {c} (implementation)"
-        case r.SetParameters(component=c, values=v):
+        case SetParameters(component=c, values=v):
             return f"set {c} {', '.join(f'{k}={x!r}' for k, x in v.items())}"
-        case r.Rewire(component=c, port=p):
+        case Rewire(component=c, port=p):
             return f"rewire {c}.{p}"
     return type(s).__name__  # pragma: no cover
 
@@ -339,7 +348,7 @@ class Transaction:
 
 @dataclass
 class _Swap:
-    step: r.SwapComponent
+    step: SwapComponent
     old: NodeSpec
     new: NodeSpec
     strategy: str
@@ -410,35 +419,35 @@ class Executor:
             steps=len(specs),
         )
 
-    def normalize(self, plan: r.Plan) -> tuple[r.Plan, list[str]]:
+    def normalize(self, plan: Plan) -> tuple[Plan, list[str]]:
         """The plan as it applies to the nodes this executor knows to run, and what had to
         change: a stop of a node that is not running is dropped, a swap whose old node is not
         running becomes a start, parameters and rewires of a node that is not running are
         dropped (it starts with them). Such a plan comes from a model that moved on without
         the running system; the reconcile loop converges the rest."""
         known = {**self.running, **self.standby}
-        steps: list[r.PlanStep] = []
+        steps: list[PlanStep] = []
         notes: list[str] = []
         for s in plan.steps:
             name = s.component
-            if isinstance(s, r.SwapComponent) and name not in self.running:
+            if isinstance(s, SwapComponent) and name not in self.running:
                 notes.append(f"{name} was not running: {s.replacement} is started instead")
                 steps.append(
-                    r.StartComponent(
+                    StartComponent(
                         component=s.replacement,
                         definition=s.definition,
                         inputs=s.inputs,
                         outputs=s.outputs,
                     )
                 )
-            elif isinstance(s, r.StartComponent) and name in self.running:
+            elif isinstance(s, StartComponent) and name in self.running:
                 notes.append(f"{name} was running already")
             elif isinstance(
-                s, r.StopComponent | r.SetParameters | r.Rewire | r.SetImplementation
+                s, StopComponent | SetParameters | Rewire | SetImplementation
             ) and (name not in known):
-                if isinstance(s, r.SetImplementation):
+                if isinstance(s, SetImplementation):
                     steps.append(
-                        r.StartComponent(
+                        StartComponent(
                             component=name,
                             definition=s.definition,
                             inputs=s.inputs,
@@ -448,9 +457,9 @@ class Executor:
                 notes.append(f"{name} was not running ({type(s).__name__} adjusted)")
             else:
                 steps.append(s)
-        return r.Plan(steps=tuple(steps)), notes
+        return Plan(steps=tuple(steps)), notes
 
-    def execute(self, plan: r.Plan, *, skip: Collection[str] = ()) -> Outcome:
+    def execute(self, plan: Plan, *, skip: Collection[str] = ()) -> Outcome:
         """Apply ``plan``; the units launching a component named in ``skip`` (implementations
         known to be unavailable) are not tried and count as failed."""
         t0 = self.clock()
@@ -466,7 +475,7 @@ class Executor:
         self._apply(plan, units, tx)
         return self._outcome(plan, units, tx, t0)
 
-    def _outcome(self, plan: r.Plan, units: list[int], tx: Transaction, t0: float) -> Outcome:
+    def _outcome(self, plan: Plan, units: list[int], tx: Transaction, t0: float) -> Outcome:
         failures = []
         for u, (error, nodes, rollback_error) in tx.failed.items():
             mine = [s for s, v in zip(plan.steps, units, strict=True) if v == u]
@@ -475,7 +484,7 @@ class Executor:
                     steps=[describe_step(s) for s in mine],
                     structure=frozenset(n for s in mine for n in _structural(s)),
                     parameters=frozenset(
-                        s.component for s in mine if isinstance(s, r.SetParameters)
+                        s.component for s in mine if isinstance(s, SetParameters)
                     ),
                     error=error,
                     nodes=nodes,
@@ -500,18 +509,18 @@ class Executor:
         )
 
     # ---- the phases --------------------------------------------------------------------
-    def _apply(self, plan: r.Plan, units: list[int], tx: Transaction) -> None:
+    def _apply(self, plan: Plan, units: list[int], tx: Transaction) -> None:
         steps = list(zip(plan.steps, units, strict=True))
         steps = self._parameters_first(tx, steps)
         live = [(s, u) for s, u in steps if tx.ok(u)]
-        starts = [(self._spec(s), u) for s, u in live if isinstance(s, r.StartComponent)]
+        starts = [(self._spec(s), u) for s, u in live if isinstance(s, StartComponent)]
         self._start(tx, starts)
         swaps = [
             self._plan_swap(s, u)
             for s, u in steps
-            if isinstance(s, r.SwapComponent) and tx.ok(u)
+            if isinstance(s, SwapComponent) and tx.ok(u)
         ]
-        restarts = [(s, u) for s, u in steps if isinstance(s, r.SetImplementation) and tx.ok(u)]
+        restarts = [(s, u) for s, u in steps if isinstance(s, SetImplementation) and tx.ok(u)]
         self._prepare(tx, swaps, restarts)
         swaps = [w for w in swaps if tx.ok(w.unit)]
         cold = [w for w in swaps if w.strategy == "stop-then-start"]
@@ -536,12 +545,12 @@ class Executor:
         self._switch(tx, warm, steps, states)
         self._retire(tx, [w for w in warm if tx.ok(w.unit)], steps)
 
-    def _parameters_first(self, tx: Transaction, steps: list[tuple[r.PlanStep, int]]):
+    def _parameters_first(self, tx: Transaction, steps: list[tuple[PlanStep, int]]):
         """A plan that starts processes sets the parameters that depend on nothing first, in
         one batch, so that they never wait for a start (seconds, or a timeout); the other
         steps are returned. Without starts they go with the switch (one batch less)."""
         launches = any(_launches(s) is not None for s, u in steps if tx.ok(u))
-        mixed = {u for s, u in steps if not isinstance(s, r.SetParameters)}
+        mixed = {u for s, u in steps if not isinstance(s, SetParameters)}
         alone = [(s, u) for s, u in steps if u not in mixed and tx.ok(u)]
         if not launches or not alone:
             return steps
@@ -551,7 +560,7 @@ class Executor:
     def _param_ctls(self, steps) -> list[Ctl]:
         out = []
         for s, u in steps:
-            if isinstance(s, r.SetParameters):
+            if isinstance(s, SetParameters):
                 spec = self.running[s.component]
                 old = {k: spec.params.get(k) for k in s.values}
                 request = m.SetParams(params=dict(s.values))
@@ -563,7 +572,7 @@ class Executor:
         stops = [
             (self.running[s.component], u)
             for s, u in steps
-            if isinstance(s, r.StopComponent) and tx.ok(u) and s.component in self.running
+            if isinstance(s, StopComponent) and tx.ok(u) and s.component in self.running
         ]
         for w in warm:
             if not self.replacement.pre_started(w.old.name):
@@ -577,7 +586,7 @@ class Executor:
     def _unkeep(self, spec: NodeSpec) -> None:
         self.running[spec.name] = self.standby.pop(spec.name, spec)
 
-    def _spec(self, s: r.StartComponent | r.SwapComponent | r.SetImplementation, **kw: Any):
+    def _spec(self, s: StartComponent | SwapComponent | SetImplementation, **kw: Any):
         return spec_for(
             self.keys,
             s.definition,
@@ -589,7 +598,7 @@ class Executor:
             **kw,
         )
 
-    def _plan_swap(self, s: r.SwapComponent, unit: int) -> _Swap:
+    def _plan_swap(self, s: SwapComponent, unit: int) -> _Swap:
         strategy = self.replacement.strategy_for(s.replacement)
         if strategy in PRE_STARTED and s.replacement not in self.standby:
             strategy = "start-then-stop"  # nothing pre-started: make before break
@@ -640,7 +649,7 @@ class Executor:
             wiring = {p: [self.keys.data(t) for t in ts] for p, ts in w.step.inputs.items()}
             batch += self._rewires(new, wiring, w.unit)
         for s, u in steps:
-            if isinstance(s, r.Rewire) and tx.ok(u):
+            if isinstance(s, Rewire) and tx.ok(u):
                 spec = self.running[s.component]
                 batch += self._rewires(spec, {s.port: [self.keys.data(t) for t in s.topics]}, u)
         wanted = [w for w in [*warm, *cold] if self._wants_state(w)]
@@ -798,11 +807,11 @@ def _record(
         tx.records.append(StepRecord(action, name, seconds, False, why))
 
 
-def _launches(s: r.PlanStep) -> str | None:
+def _launches(s: PlanStep) -> str | None:
     """The component a step starts a process of (None: it starts nothing)."""
-    if isinstance(s, r.StartComponent | r.SetImplementation):
+    if isinstance(s, StartComponent | SetImplementation):
         return s.component
-    if isinstance(s, r.SwapComponent):
+    if isinstance(s, SwapComponent):
         return s.replacement
     return None
 

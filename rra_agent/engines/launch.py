@@ -23,7 +23,7 @@ from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.deployment import Deployment, deploy, prepare
 from rra_agent.errors import RraError
-from rra_agent.node import SPEC_ENV
+from rra_agent.node.process import SPEC_ENV
 
 
 def engine_arguments(prog: str, doc: str | None) -> argparse.ArgumentParser:

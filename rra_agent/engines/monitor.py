@@ -3,7 +3,7 @@
 The paper generated a monitor per system by model-to-text transformation; this process
 interprets the model instead: it subscribes to every source interface the measurements name
 (the publisher's topic in the Deployment-time Configured System Model), feeds the samples to
-`rra_agent.core.context.ContextMonitor`, and publishes each Context Dependent Measurement on
+`rra_agent.core.monitor.ContextMonitor`, and publishes each Context Dependent Measurement on
 ``rra/<system>/ctx/<name>`` with its computation time and the send times of its sources.
 
 Trust: a sample is decoded against its port's declared data type as it arrives, on the Zenoh
@@ -50,20 +50,20 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent import trace
+from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import data_limit, too_large
-from rra_agent.core.context import ContextMonitor
-from rra_agent.core.resolution import topic_of
+from rra_agent.bus.counters import Refused, data_limit, receive
+from rra_agent.core.monitor import ContextMonitor
+from rra_agent.core.plan import topic_of
 from rra_agent.core.samples import MALFORMED, Refusal
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
-from rra_agent.models.pkgimport import add_package_path
 from rra_agent.models.system import parse_endpoint
+from rra_agent.package.imports import add_package_path
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
@@ -91,7 +91,7 @@ def import_dotted(dotted: str) -> Any:
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
     """Measurement name -> its function: a function of the source data type, or a dotted path.
 
-    The package folder is appended to ``sys.path`` (`rra_agent.models.pkgimport`) so a
+    The package folder is appended to ``sys.path`` (`rra_agent.package.imports`) so a
     package may ship its own functions.
     """
     pkg = dep.package
@@ -126,7 +126,7 @@ def model_hosts(dep: Deployment, default: str) -> list[str]:
     )
 
 
-class MonitorProcess(EngineProcess):
+class ContextMonitorProcess(EngineProcess):
     """The Context Monitor (one replica of the ``monitor`` role)."""
 
     role = NAME
@@ -291,15 +291,9 @@ class MonitorProcess(EngineProcess):
 
     # ---- availability (failure as context) ------------------------------------------------
     def _on_state(self, sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
-        if too_large("state", len(raw)):
-            self.drop("too_large", f"engine state of {len(raw)} bytes")
-            return
-        try:
-            state = _STATE.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.drop("malformed", f"engine state: {e}")
-            return
+        state = receive(sample.payload, "state", _STATE)
+        if isinstance(state, Refused):
+            return self.drop(state.code, f"engine state: {state.detail}")
         if self.resolution is None or not self.resolution.is_leader(state.fence):
             self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
             return
@@ -439,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     dep, bus, host, name = setup
     try:
-        proc = MonitorProcess(dep, bus, host=host, name=name)
+        proc = ContextMonitorProcess(dep, bus, host=host, name=name)
     except (RraError, ImportError, AttributeError, ValueError) as e:
         print(f"rra monitor: {e}", file=sys.stderr)
         return 2
@@ -448,3 +442,6 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+__getattr__ = _compat.renamed(__name__)  # old names, for one release (docs/api.md)

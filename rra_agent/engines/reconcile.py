@@ -33,7 +33,17 @@ import msgspec
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply
-from rra_agent.core import resolution as r
+from rra_agent.core.plan import (
+    Plan,
+    PlanStep,
+    Rewire,
+    SetImplementation,
+    SetParameters,
+    StartComponent,
+    StopComponent,
+    subscriptions,
+    wiring,
+)
 from rra_agent.models.system import SystemModel
 
 #: Observed states in which the host agent is handling the node itself.
@@ -148,16 +158,16 @@ def takeover_plan(
     target: SystemModel,
     keep_standby: set[str],
     hot: Collection[str] = (),
-) -> tuple[r.Plan, dict[str, m.NodeSpec], dict[str, m.NodeSpec]]:
+) -> tuple[Plan, dict[str, m.NodeSpec], dict[str, m.NodeSpec]]:
     """The plan from what runs to ``target``, and the nodes to hand the executor as already
     running and as standby. ``expected``: the spec each target component should run with;
     ``keep_standby``: components that may stay running inactive as standby replacements, or
     active if they are in ``hot`` (hot standbys)."""
-    subs = r.subscriptions(target)
+    subs = subscriptions(target)
     by_name = {c.name: c for c in target.components}
     running: dict[str, m.NodeSpec] = {}
     standby: dict[str, m.NodeSpec] = {}
-    steps: list[r.PlanStep] = []
+    steps: list[PlanStep] = []
     unreachable = {n for n, st in observed.states.items() if st.host in observed.unreachable} | {
         n for n, s in expected.items() if s.host in observed.unreachable
     }
@@ -173,7 +183,7 @@ def takeover_plan(
             st = observed.states[name]
             if st.state != "STOPPING":
                 running[name] = _placeholder(target.system, st)
-                steps.append(r.StopComponent(component=name))
+                steps.append(StopComponent(component=name))
     for name, seen in observed.nodes.items():
         if name in expected:
             running[name] = seen
@@ -182,14 +192,14 @@ def takeover_plan(
             standby[name] = seen
         else:
             running[name] = seen
-            steps.append(r.StopComponent(component=name))
+            steps.append(StopComponent(component=name))
     present = {*observed.nodes, *observed.pending, *observed.silent, *unreachable}
     starts = [
-        r.StartComponent(component=n, definition=by_name[n], **r.wiring(by_name[n], subs))
+        StartComponent(component=n, definition=by_name[n], **wiring(by_name[n], subs))
         for n in expected
         if n not in present
     ]
-    return r.Plan(steps=tuple(_canonical(starts + steps))), running, standby
+    return Plan(steps=tuple(_canonical(starts + steps))), running, standby
 
 
 def _placeholder(system: str, st: m.NodeState) -> m.NodeSpec:
@@ -202,7 +212,7 @@ def _placeholder(system: str, st: m.NodeState) -> m.NodeSpec:
     )
 
 
-def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs) -> list[r.PlanStep]:
+def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs) -> list[PlanStep]:
     same_shape = (
         seen.implementation == want.implementation
         and seen.host == want.host
@@ -213,26 +223,26 @@ def _reconcile(seen: m.NodeSpec, want: m.NodeSpec, c, subs) -> list[r.PlanStep]:
     )
     if not same_shape:
         return [
-            r.SetImplementation(
+            SetImplementation(
                 component=c.name,
                 implementation=c.implementation,
                 previous=seen.implementation,
                 definition=c,
-                **r.wiring(c, subs),
+                **wiring(c, subs),
             )
         ]
-    steps: list[r.PlanStep] = []
+    steps: list[PlanStep] = []
     values = {k: v for k, v in want.params.items() if seen.params.get(k) != v}
     if values:
-        steps.append(r.SetParameters(component=c.name, values=values))
+        steps.append(SetParameters(component=c.name, values=values))
     for port, spec in want.ports.items():
         if spec.direction == "subscribe" and seen.ports[port].keys != spec.keys:
-            steps.append(r.Rewire(component=c.name, port=port, topics=subs[(c.name, port)]))
+            steps.append(Rewire(component=c.name, port=port, topics=subs[(c.name, port)]))
     return steps
 
 
-_ORDER = (r.StartComponent, r.SetImplementation, r.SetParameters, r.Rewire, r.StopComponent)
+_ORDER = (StartComponent, SetImplementation, SetParameters, Rewire, StopComponent)
 
 
-def _canonical(steps: list[r.PlanStep]) -> list[r.PlanStep]:
+def _canonical(steps: list[PlanStep]) -> list[PlanStep]:
     return sorted(steps, key=lambda s: next(i for i, t in enumerate(_ORDER) if isinstance(s, t)))

@@ -42,10 +42,10 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent import trace
+from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import too_large
+from rra_agent.bus.counters import Refused, receive
 from rra_agent.core import resolution as r
 from rra_agent.core.availability import (
     Need,
@@ -53,10 +53,18 @@ from rra_agent.core.availability import (
     needed_by,
     requirements,
 )
+from rra_agent.core.cv import clamp_cv
 from rra_agent.core.effect import effective_model, in_effect
 from rra_agent.core.election import Term, newer
 from rra_agent.core.features import check_selection, default_runtime_selection
-from rra_agent.core.rules import clamp_cv
+from rra_agent.core.plan import (
+    Plan,
+    SetParameters,
+    diff,
+    standby_subscriptions,
+    subscriptions,
+    wiring,
+)
 from rra_agent.deployment import Deployment
 from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
@@ -94,7 +102,7 @@ _REPLY = m.Codec[m.Reply](m.Reply)
 _ENGINE_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 
 
-class ResolutionEngine(EngineProcess):
+class ResolutionEngineProcess(EngineProcess):
     role = NAME
     tick_period = 0.1
 
@@ -185,10 +193,10 @@ class ResolutionEngine(EngineProcess):
 
     def _specs(self, model: SystemModel, components: list[Component]) -> list[m.NodeSpec]:
         """The specs that run ``components`` wired as ``model`` connects them."""
-        subs = r.subscriptions(model)
+        subs = subscriptions(model)
         path = (str(self.dep.package.root),)
         held = self.standby_inputs
-        wired = {c.name: r.wiring(c, subs) for c in components}
+        wired = {c.name: wiring(c, subs) for c in components}
         return [
             spec_for(
                 self.keys, c, wired[c.name]["inputs"], wired[c.name]["outputs"],
@@ -203,7 +211,7 @@ class ResolutionEngine(EngineProcess):
         configured = self.dep.configured
         rep = self.dep.package.runtime.replacement
         hot = [c.name for c in configured.components if rep.hot(c.name)]
-        return r.standby_subscriptions(configured, hot)
+        return standby_subscriptions(configured, hot)
 
     @property
     def hosts(self) -> list[str]:
@@ -215,15 +223,9 @@ class ResolutionEngine(EngineProcess):
 
     # ---- bus callbacks (Zenoh thread) ----------------------------------------------------
     def _on_selection(self, sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
-        if too_large("selection", len(raw)):
-            self.drop("too_large", f"selection of {len(raw)} bytes")
-            return
-        try:
-            msg = _SEL.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.drop("malformed", f"selection: {e}")
-            return
+        msg = receive(sample.payload, "selection", _SEL)
+        if isinstance(msg, Refused):
+            return self.drop(msg.code, f"selection: {msg.detail}")
         self.counters.received += 1
         if isinstance(msg, m.Selection):
             if msg.changed:
@@ -236,14 +238,9 @@ class ResolutionEngine(EngineProcess):
                 self.loop.post(self._take_latest)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
-        if too_large("state", len(raw)):
-            return
-        try:
-            state = _STATE.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.drop("malformed", f"engine state: {e}")
-            return
+        state = receive(sample.payload, "state", _STATE)
+        if isinstance(state, Refused):
+            return self.drop(state.code, f"engine state: {state.detail}")
         if self.election is None or state.fence.instance != self.election.instance:
             self.loop.post(lambda: self._mirror(state))
 
@@ -476,7 +473,7 @@ class ResolutionEngine(EngineProcess):
         t0 = time.perf_counter()
         try:
             target = self.target(self.selection, self.cv)
-            plan = r.diff(self.current, target)
+            plan = diff(self.current, target)
         except RraError as e:
             self._retry_later()
             self._changed()
@@ -735,7 +732,7 @@ class ResolutionEngine(EngineProcess):
         if node in self.executor.standby:
             spec = next((s for s in self.standby_specs(target) if s.name == node), None)
             if spec is not None:
-                plan = r.Plan(steps=(r.SetParameters(component=node, values=dict(spec.params)),))
+                plan = Plan(steps=(SetParameters(component=node, values=dict(spec.params)),))
                 self.executor.running[node] = self.executor.standby.pop(node)
                 try:
                     return self.executor.execute(plan)
@@ -750,7 +747,7 @@ class ResolutionEngine(EngineProcess):
             self.current,
             components=[changed if c.name == node else c for c in self.current.components],
         )
-        outcome = self.executor.execute(r.diff(self.current, model))
+        outcome = self.executor.execute(diff(self.current, model))
         if outcome.ok:
             self.current = model
         return outcome
@@ -1231,7 +1228,7 @@ def main(argv: list[str] | None = None) -> int:
     if setup is None:
         return 2
     dep, bus, host, name = setup
-    engine = ResolutionEngine(
+    engine = ResolutionEngineProcess(
         dep,
         bus,
         host=host,
@@ -1246,3 +1243,6 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+__getattr__ = _compat.renamed(__name__)  # old names, for one release (docs/api.md)

@@ -43,12 +43,13 @@ import msgspec
 import zenoh
 
 from rra_agent import trace
+from rra_agent.bus import counters
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, explain_open_failure, node_zid
-from rra_agent.bus.counters import Counters, RateLimitedLog, too_large, topic_limits
+from rra_agent.bus.counters import Counters, RateLimitedLog, receive, topic_limits
 from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
-from rra_agent.bus.runtime import open_session
+from rra_agent.bus.session import open_session
 from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
 from rra_agent.host import scheduling, unique
@@ -235,14 +236,9 @@ class HostAgent:
 
     # ---- Zenoh callbacks (enqueue only) -------------------------------------------------
     def _on_query(self, query: zenoh.Query) -> None:
-        raw = query.payload.to_bytes() if query.payload is not None else b""
-        if too_large("host_ctl", len(raw)):
-            self._answer_now(query, "too_large", f"request of {len(raw)} bytes")
-            return
-        try:
-            req: m.HostRequest = _REQ.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self._answer_now(query, "malformed", f"malformed request: {e}")
+        req = receive(query.payload, "host_ctl", _REQ)
+        if isinstance(req, counters.Refused):
+            self._answer_now(query, req.code, req.err().message)
             return
         self.counters.received += 1
         if isinstance(req, m.Ping):  # answered here: a probe must not wait behind work

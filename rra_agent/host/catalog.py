@@ -29,7 +29,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.keys import check_chunk
 from rra_agent.host.forkserver import python_module
 from rra_agent.models.system import Component, SystemModel, coerce_parameter
-from rra_agent.node import CONTAINER
+from rra_agent.node.process import CONTAINER
 
 
 class Refused(Exception):

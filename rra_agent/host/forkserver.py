@@ -45,7 +45,7 @@ among them is the system package's folder, appended to the import path before th
 ``--main JSON`` (repeatable) a command ``[python, "-m", MODULE, ARG...]`` to prepare for;
 ``--spare-bus JSON`` the bus configuration of every node of the host, when they share one
 (no certificates): each spare opens its Zenoh session with it while it waits, and the node
-it becomes takes that session (`rra_agent.bus.runtime.preopen`).
+it becomes takes that session (`rra_agent.bus.session.preopen`).
 
 The zygote exits when its stdin closes.
 """
@@ -74,7 +74,7 @@ from rra_agent import trace
 from rra_agent.bus.messages import NodeSpec
 
 #: What every Python node needs: imported once, in the zygote.
-PRELOAD = ("zenoh", "msgspec", "rra_agent.bus.runtime", "rra_agent.node")
+PRELOAD = ("zenoh", "msgspec", "rra_agent.node.runtime", "rra_agent.node")
 _PR_SET_PDEATHSIG = 1
 _PR_SET_CHILD_SUBREAPER = 36
 #: How long a node waits to be adopted by the host agent before it gives up.
@@ -120,10 +120,10 @@ class ForkServerError(OSError):
 def _preload(names: Iterable[str]) -> None:
     """Import modules; for an implementation (``pkg.module.Class``), import it and call its
     `Node.warm_up`. An absolute folder among the names is a system package's folder: it is
-    appended to the import path first (`rra_agent.models.pkgimport`), so the package's own
+    appended to the import path first (`rra_agent.package.imports`), so the package's own
     node classes are imported and warmed up here too, and every node forked inherits it."""
-    from rra_agent.models.pkgimport import add_package_path
-    from rra_agent.node import load_node_class
+    from rra_agent.node.loading import load_node_class
+    from rra_agent.package.imports import add_package_path
 
     names = list(names)
     folders = [n for n in names if os.path.isabs(n)]
@@ -377,10 +377,10 @@ def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> N
         if not _adopted(host_pid):
             os._exit(EXIT_SETUP)
         if preopen is not None:
-            from rra_agent.bus import runtime
             from rra_agent.bus.config import BusConfig
+            from rra_agent.bus.session import preopen as open_ahead
 
-            runtime.preopen(msgspec.json.decode(preopen, type=BusConfig))
+            open_ahead(msgspec.json.decode(preopen, type=BusConfig))
         data = b""
         while not data.endswith(b"\n"):
             chunk = os.read(pipe, 65536)
@@ -416,7 +416,7 @@ def _node(request: dict[str, Any]) -> None:
         argv = request.get("argv")
         main = request.get("main")
         if argv:  # exec'd: the command opens its own session, if it has one
-            from rra_agent.bus.runtime import discard_preopened
+            from rra_agent.bus.session import discard_preopened
 
             discard_preopened()
         _schedule(spec)
@@ -429,7 +429,7 @@ def _node(request: dict[str, Any]) -> None:
         if main and argv:
             code = run_main(main, argv[3:])
         else:
-            from rra_agent.node import run_node
+            from rra_agent.node.process import run_node
 
             code = run_node(spec)
     except SystemExit as e:  # sys.exit in the node's code: its status, as Python's own

@@ -1,6 +1,6 @@
 """The host agent's record of the components that run inside component containers.
 
-A container (`rra_agent.host.container`) is supervised as one process by the `Supervisor`;
+A container (`rra_agent.node.container`) is supervised as one process by the `Supervisor`;
 its components are not processes, so they get this smaller state machine, with the same
 states and the same `Transition` events as nodes (``rra status``, the actuator and the
 reconcile loop see a component in a container as they see a node, with the container's
@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from rra_agent.bus import messages as m
-from rra_agent.failure import reason as with_failure
+from rra_agent.bus.failure import reason as with_failure
 from rra_agent.host.supervisor import State, Transition
 
 

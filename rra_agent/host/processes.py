@@ -6,9 +6,9 @@ Either way the node becomes a direct child of this process (a child subreaper), 
 is *reaped here*: `reap` returns every exit since the last call, and the host agent calls it
 whenever SIGCHLD wakes its loop, so a death is known at once, never from a lease. Each node
 gets its spec in ``RRA_NODE_SPEC``, the bus configuration in ``RRA_BUS_CONFIG``, a heartbeat
-slot in ``RRA_HEARTBEAT`` (`rra_agent.host.heartbeat`), its output in ``<log_dir>/<node>.log``
+slot in ``RRA_HEARTBEAT`` (`rra_agent.bus.heartbeat`), its output in ``<log_dir>/<node>.log``
 and the file for its failure report in ``RRA_FAILURE_REPORT`` (``<log_dir>/<node>.failure``,
-`rra_agent.failure`), read when it is reaped (``failures``; for an external command that
+`rra_agent.bus.failure`), read when it is reaped (``failures``; for an external command that
 failed, the last lines of its output instead).
 
 A command among ``forked`` (the host agent's own ``python -m MODULE ...`` processes: ``rra
@@ -38,12 +38,12 @@ from pathlib import Path
 
 import msgspec
 
-from rra_agent import failure
+from rra_agent.bus import failure
+from rra_agent.bus import heartbeat as hb
 from rra_agent.bus.config import ENV_VAR as BUS_ENV
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import check_chunk
 from rra_agent.bus.messages import Failure, NodeSpec
-from rra_agent.host import heartbeat as hb
 from rra_agent.host import scheduling
 from rra_agent.host.forkserver import (
     ForkServer,
@@ -52,7 +52,7 @@ from rra_agent.host.forkserver import (
     die_with_parent,
     python_module,
 )
-from rra_agent.node import SPEC_ENV
+from rra_agent.node.process import SPEC_ENV
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
 Prober = Callable[[str, int, float], None]

@@ -39,9 +39,9 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Protocol, cast
 
+from rra_agent.bus.failure import reason as with_failure
+from rra_agent.bus.heartbeat import Beat
 from rra_agent.bus.messages import Failure, NodeSpec, NodeStateName
-from rra_agent.failure import reason as with_failure
-from rra_agent.host.heartbeat import Beat
 from rra_agent.models.system import Supervision
 
 EXIT_CONFIG = 2  # rra_agent.node's exit status for an unusable spec or implementation

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rra_agent.node import Node
+from rra_agent.node.api import Node
 
 
 class Relay(Node):

@@ -6,7 +6,7 @@ textual forms of `rra_agent.scenario.expectations`). A file may hold several ``c
 (e.g. the adaptive run and its control run with adaptation disabled): each case overrides
 the scenario's settings and adds its own timeline steps and expectations.
 
-`load_scenario` reads a file with `rra_agent.models.yamlload` (every problem located as
+`load_scenario` reads a file with `rra_agent.package.yamlload` (every problem located as
 ``file:line:col``), loads the package, parses every expectation and checks every name it and
 the timeline refer to (features, nodes, ports, parameters, measurements, CV attributes,
 injections, links) against the package, so a typo fails at load (pytest: at collection), not
@@ -32,14 +32,15 @@ from yaml.nodes import ScalarNode
 from rra_agent.bus.keys import check_topic
 from rra_agent.core.conflicts import conflict_targets
 from rra_agent.core.features import complete_deployment, default_runtime_selection
-from rra_agent.core.resolution import peers_of, resolve_deployment, topic_of
+from rra_agent.core.plan import peers_of, topic_of
+from rra_agent.core.resolution import resolve_deployment
 from rra_agent.deployment import Deployment
 from rra_agent.errors import ErrorGroup, Location, ModelError, RraError
 from rra_agent.models.base import FrozenModel
-from rra_agent.models.loader import load_package
 from rra_agent.models.resolution import Replacement
 from rra_agent.models.system import parse_endpoint
-from rra_agent.models.yamlload import YamlDoc, load_yaml, unknown_name
+from rra_agent.package.loader import load_package
+from rra_agent.package.yamlload import YamlDoc, load_yaml, unknown_name
 from rra_agent.scenario import expectations as x
 
 Name = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]+$")]

@@ -100,7 +100,7 @@ class ScenarioFile(pytest.File):
 
     def repr_failure(self, excinfo: pytest.ExceptionInfo[BaseException]) -> Any:  # type: ignore[override]
         if isinstance(excinfo.value, RraError):
-            from rra_agent.models.loader import flatten_errors
+            from rra_agent.package.loader import flatten_errors
 
             return "\n".join(str(e) for e in flatten_errors(excinfo.value))
         return super().repr_failure(excinfo)

@@ -47,15 +47,15 @@ import msgspec
 import yaml
 import zenoh
 
-from rra_agent import failure
+from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.config import BusConfig, free_port
-from rra_agent.bus.runtime import NoPeer
+from rra_agent.bus.data import decode_data, encode_data
+from rra_agent.bus.session import NoPeer
 from rra_agent.engines.events import read_events
 from rra_agent.errors import RraError
 from rra_agent.host.processes import die_with_parent
-from rra_agent.node import decode_data, encode_data
 from rra_agent.scenario import expectations as x
 from rra_agent.scenario.link import Link
 from rra_agent.scenario.model import ENGINES, ScenarioCase, TimedStep
@@ -589,7 +589,7 @@ class _Run:
         try:
             if step.set_params is not None:
                 sp = step.set_params
-                from rra_agent.cli.status import set_params
+                from rra_agent.bus.client import set_params
 
                 try:  # as an operator does: kept in the model, re-applied after restarts
                     set_params(client, sp.node, dict(sp.params))

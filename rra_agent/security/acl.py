@@ -50,7 +50,7 @@ from typing import Any
 
 from rra_agent.bus.config import node_zid
 from rra_agent.bus.keys import Keys
-from rra_agent.core.resolution import topic_of
+from rra_agent.core.plan import topic_of
 from rra_agent.deployment import Deployment
 from rra_agent.models.system import Component, SystemModel, parse_endpoint
 from rra_agent.security.certs import OPERATOR, common_name

@@ -38,7 +38,7 @@ from rra_agent.viz.rerun_log import SIM, RerunConfig
 
 if TYPE_CHECKING:
     from rra_agent.models.features import Feature
-    from rra_agent.models.loader import SystemPackage
+    from rra_agent.package.contents import SystemPackage
 
 VEHICLE_SIMULATOR = "rra_agent.sim.nodes.VehicleSimulator"
 ROBOT_DRIVER = "rra_agent.nodes.object_storing.RobotDriver"
@@ -325,7 +325,7 @@ def read_blueprint(path: Path) -> SavedBlueprint | None:
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.viz.blueprint PKG``: `send` the blueprint of the package PKG for
     the recording that ``RRA_RERUN`` describes."""
-    from rra_agent.models.loader import load_package
+    from rra_agent.package.loader import load_package
 
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING
 from rra_agent.viz.rerun_log import DEFAULT_URL, ENV_VAR, RerunConfig, viewer_reachable
 
 if TYPE_CHECKING:
-    from rra_agent.models.loader import SystemPackage
+    from rra_agent.package.contents import SystemPackage
 
 SUBDIR = "rerun"
 #: In a run folder: the path of the merged recording when ``--rerun save PATH`` put it

@@ -498,7 +498,7 @@ class Logger:
         """A node's state transition at ``/nodes/<node>/state`` and ``.../running``; one
         that came with a failure (what the node raised, where, its log) also as an error
         line of ``/events``."""
-        from rra_agent.failure import details, without_summary
+        from rra_agent.bus.failure import details, without_summary
 
         rr = self.rr
         text = st.state + (f" pid {st.pid}" if st.pid else "") + ("" if st.active else " standby")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar, NamedTuple
 
-from rra_agent.node import Node, NodeContext, NodeError
+from rra_agent.node.api import Node, NodeContext, NodeError
 
 #: Log the first bad sample of a port, then one in this many.
 LOG_EVERY = 100

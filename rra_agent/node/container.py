@@ -37,22 +37,18 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent import failure
+from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import Counters, too_large
+from rra_agent.bus.counters import Counters, Refused, receive
+from rra_agent.bus.heartbeat import Heartbeat
 from rra_agent.bus.keys import Keys
-from rra_agent.bus.runtime import (
-    CONTROL_QOS,
-    ZenohTransport,
-    beat_period,
-    control_callback,
-    must_wake,
-    open_session,
-)
-from rra_agent.host.heartbeat import Heartbeat
+from rra_agent.bus.session import CONTROL_QOS, beat_period, open_session
 from rra_agent.models.system import coerce_parameter
-from rra_agent.node import NodeCore, NodeError, load_node_class
+from rra_agent.node.api import NodeError
+from rra_agent.node.core import NodeCore
+from rra_agent.node.loading import load_node_class
+from rra_agent.node.runtime import ZenohTransport, control_callback, must_wake
 
 _REQ = m.Codec[m.ContainerRequest](m.ContainerRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
@@ -133,17 +129,10 @@ class ContainerRuntime:
 
     # ---- the container's control endpoint (Zenoh thread: hand to the main loop) ---------
     def _on_query(self, query: zenoh.Query) -> None:
-        raw = query.payload.to_bytes() if query.payload is not None else b""
-        if too_large("node_ctl", len(raw)):
+        req = receive(query.payload, "node_ctl", _REQ)
+        if isinstance(req, Refused):
             self.counters.dropped += 1
-            query.reply(query.key_expr, _REPLY.encode(m.Err(message="too large", code="too_large")))
-            return
-        try:
-            req = _REQ.decode(raw)
-        except (msgspec.DecodeError, msgspec.ValidationError) as e:
-            self.counters.dropped += 1
-            err = m.Err(message=f"malformed request: {e}", code="malformed")
-            query.reply(query.key_expr, _REPLY.encode(err))
+            query.reply(query.key_expr, _REPLY.encode(req.err()))
             return
         self.counters.received += 1
         if isinstance(req, m.Ping):  # answered here: a probe must not wait behind a load

@@ -14,7 +14,7 @@ a self-pipe, written by SIGINT/SIGTERM (``signal.set_wakeup_fd``) and by a Shutd
 
 Ready handshake: the liveliness token ``rra/<system>/alive/<host>/<node>`` is declared last,
 after every port is bound and ``on_start`` has run; then the ready flag of the heartbeat is
-set. Heartbeat (`rra_agent.host.heartbeat`): the main loop writes it four times per
+set. Heartbeat (`rra_agent.bus.heartbeat`): the main loop writes it four times per
 ``heartbeat_timeout``, holding the node's lock, so a node whose callbacks are stuck stops
 beating and its host agent probes it.
 Shutdown: ``on_stop``, token undeclared, session closed in ``finally`` (a session left open
@@ -39,64 +39,17 @@ import zenoh
 from rra_agent import trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import too_large
+from rra_agent.bus.counters import Refused, receive
+from rra_agent.bus.heartbeat import Heartbeat
 from rra_agent.bus.keys import Keys
-from rra_agent.errors import RraError
-from rra_agent.host.heartbeat import Heartbeat
-from rra_agent.node import Node, NodeCore
+from rra_agent.bus.session import CONTROL_QOS, beat_period, data_publisher, open_session
+from rra_agent.node.api import Node
+from rra_agent.node.core import NodeCore
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
 #: The data samples' send-time attachment (as `messages.pack_stamp`), inlined on the hot path.
 _STAMP = struct.Struct("<d")
-
-
-#: A session a spare node process opened before it knew its node (`preopen`), with the
-#: configuration it was opened with: `open_session` takes it for that configuration.
-_preopened: tuple[BusConfig, zenoh.Session] | None = None
-
-
-def preopen(bus: BusConfig) -> None:
-    """Open the session of the node this process will become, before it is known (a spare
-    of the fork server, when every node of its host has one bus configuration: no
-    per-node identity). Takes zenoh's runtime start-up, the link to the router and its
-    handshake (3 ms idle, 10-15 ms on a busy machine) off the start of the node; a failure
-    leaves the node to open its own."""
-    global _preopened
-    with contextlib.suppress(Exception):
-        _preopened = (bus, zenoh.open(bus.to_zenoh()))
-
-
-def discard_preopened() -> None:
-    """Close a pre-opened session this process will not use (a node of another bus
-    configuration, a command ``exec``ed in its place)."""
-    global _preopened
-    if _preopened is not None:
-        _, session = _preopened
-        _preopened = None
-        with contextlib.suppress(Exception):
-            session.close()
-
-
-def open_session(bus: BusConfig, *, wait_connected: bool = False) -> zenoh.Session:
-    """Open a Zenoh session (or take the one pre-opened for this very configuration).
-    With ``wait_connected``, return only once the hub is linked (``scouting/delay=0`` makes
-    open return before the connect endpoints are reached, so a query sent at once would
-    find nobody); raise `NoPeer` after ``connect_timeout_ms``."""
-    global _preopened
-    if _preopened is not None and _preopened[0] == bus:
-        session, _preopened = _preopened[1], None
-    else:
-        discard_preopened()
-        session = zenoh.open(bus.to_zenoh())
-    if wait_connected and bus.connect:
-        deadline = time.monotonic() + bus.connect_timeout_ms / 1000.0
-        while not (session.info.routers_zid() or session.info.peers_zid()):
-            if time.monotonic() >= deadline:
-                session.close()
-                raise NoPeer(f"nothing reachable at {', '.join(bus.connect)}")
-            time.sleep(0.002)
-    return session
 
 
 def control_callback(core: NodeCore, wake: Callable[[], None]):
@@ -105,20 +58,15 @@ def control_callback(core: NodeCore, wake: Callable[[], None]):
     re-read the stop flag or ``rate_hz``. A node process and a container use the same."""
 
     def callback(query: zenoh.Query) -> None:
-        raw = query.payload.to_bytes() if query.payload is not None else b""
+        got = receive(query.payload, "node_ctl", _CTL)
         request: m.NodeRequest | None = None
-        if too_large("node_ctl", len(raw)):
+        if isinstance(got, Refused):
             core.counters.dropped += 1
-            reply: m.Reply = m.Err(message=f"request of {len(raw)} bytes", code="too_large")
+            reply: m.Reply = got.err()
         else:
-            try:
-                request = _CTL.decode(raw)
-            except Exception as e:  # malformed control request: refuse, count, carry on
-                core.counters.dropped += 1
-                reply = m.Err(message=f"malformed request: {e}", code="malformed")
-            else:
-                core.counters.received += 1
-                reply = core.handle(request)
+            request = got
+            core.counters.received += 1
+            reply = core.handle(request)
         query.reply(query.key_expr, _REPLY.encode(reply), **CONTROL_QOS)
         if must_wake(core, request):
             wake()
@@ -131,30 +79,6 @@ def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:
     flag, or to re-read ``rate_hz``."""
     return core.stop_requested.is_set() or (
         isinstance(request, m.SetParams) and "rate_hz" in request.params
-    )
-
-
-class NoPeer(RraError):
-    """Nothing answered at the bus endpoints (is the system running? right --connect?)."""
-
-
-def beat_period(heartbeat_timeout: float) -> float:
-    """How often a process beats: four times per deadline, between 50 ms and 1 s."""
-    return min(1.0, max(0.05, heartbeat_timeout / 4)) if heartbeat_timeout > 0 else 1.0
-
-
-#: Control requests and their replies (the Run-time Resolution Engine's rewires,
-#: activations, state transfers) go ahead of data: a reconfiguration must not queue behind
-#: the 500 Hz samples sharing the router's links, nor wait to be batched.
-CONTROL_QOS: dict[str, Any] = {"priority": zenoh.Priority.INTERACTIVE_HIGH, "express": True}
-
-
-def data_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
-    """Reliable, blocking (never silently dropping), express (unbatched) publisher."""
-    return session.declare_publisher(
-        key,
-        congestion_control=zenoh.CongestionControl.BLOCK,
-        express=True,
     )
 
 

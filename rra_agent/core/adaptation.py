@@ -1,7 +1,7 @@
 """The Adaptation Engine core (paper Sec. III-D): compiled rules evaluated one `tick` at a time.
 
-`Engine` compiles an `AdaptationModel` once into Python code objects (the evaluation units,
-a lone rule or a rule set in priority order, become straight-line code: one function per
+`AdaptationEngine` compiles an `AdaptationModel` once into Python code objects (the evaluation
+units, a lone rule or a rule set in priority order, become straight-line code: one function per
 scheduled unit, one per run of every-tick units) and then, for each tick, takes the current
 measurements and produces the run-time feature selection and the values of the Continuous
 Variability attributes. Pure: no I/O, no clock (``now`` is a parameter).
@@ -40,6 +40,7 @@ from typing import Any, Literal
 
 import msgspec
 
+from rra_agent import _compat
 from rra_agent.core import overrides
 from rra_agent.core.conflicts import (
     ClaimKey,
@@ -48,6 +49,7 @@ from rra_agent.core.conflicts import (
     ranked_variants,
     target_text,
 )
+from rra_agent.core.cv import clamp, cv_table
 from rra_agent.core.features import (
     Request,
     apply_requests,
@@ -86,8 +88,8 @@ from rra_agent.models.adaptation import (
 from rra_agent.models.features import Constraint, FeatureModel, Span, refs
 
 __all__ = [
+    "AdaptationEngine",
     "ConflictRecord",
-    "Engine",
     "FiredRule",
     "Rejected",
     "TickResult",
@@ -317,18 +319,6 @@ class _Unit:
         return any(r.period is None for r in self.rules)
 
 
-@dataclass(slots=True)
-class _Cv:
-    key: str
-    feature: str
-    attribute: str
-    lower: float | None
-    upper: float | None
-    nfr_min: list[tuple[str, float]]
-    nfr_max: list[tuple[str, float]]
-    initial: float | None
-
-
 class _Compiler:
     """AdaptationModel -> Python source of one function per unit, plus the action table."""
 
@@ -337,7 +327,7 @@ class _Compiler:
         self.slots: dict[str, int] = {}
         self.types: dict[str, str | None] = {}
         self.max_age: dict[str, float | None] = {}
-        self.cvs = _cv_table(fm)
+        self.cvs = cv_table(fm)
         self.cv_index = {(c.feature, c.attribute): i for i, c in enumerate(self.cvs)}
         self.actions: list[_ActionInfo] = []
         self.units: list[tuple[str, list[_RuleSchedule]]] = []
@@ -624,40 +614,6 @@ def _rule_measures(rule: Rule) -> list[Measure]:
     return list(out.values())
 
 
-def _cv_table(fm: FeatureModel) -> list[_Cv]:
-    """Every CV attribute with its bounds and the NFRs that constrain it."""
-    found = [(fname, a) for fname, f in fm.features.items() for a in f.attributes if a.kind == "cv"]
-    counts: dict[str, int] = {}
-    for _, a in found:
-        counts[a.name] = counts.get(a.name, 0) + 1
-    out = []
-    for fname, a in found:
-        key = a.name if counts[a.name] == 1 else f"{fname}.{a.name}"
-        nfrs = [
-            (owner, n.tag, n.rra_value)
-            for owner, f in fm.features.items()
-            for n in f.attributes
-            if n.kind == "nfr" and n.constrains in (a.name, f"{fname}.{a.name}")
-            and isinstance(n.rra_value, int | float) and not isinstance(n.rra_value, bool)
-        ]  # fmt: skip
-        initial = a.rra_value
-        if not isinstance(initial, int | float) or isinstance(initial, bool):
-            initial = a.lower if a.lower is not None else a.upper
-        out.append(
-            _Cv(
-                key=key,
-                feature=fname,
-                attribute=a.name,
-                lower=a.lower,
-                upper=a.upper,
-                nfr_min=[(o, float(v)) for o, t, v in nfrs if t == "min"],  # type: ignore[arg-type]
-                nfr_max=[(o, float(v)) for o, t, v in nfrs if t == "max"],  # type: ignore[arg-type]
-                initial=None if initial is None else float(initial),
-            )
-        )
-    return out
-
-
 def _mark_contested(actions: list[_ActionInfo]) -> None:
     """Keep only claims another unit (or the same branch) also makes: the rest cannot clash."""
     claimants: dict[ClaimKey, list[_ActionInfo]] = {}
@@ -676,7 +632,7 @@ def _mark_contested(actions: list[_ActionInfo]) -> None:
 
 
 # ---- the engine ----------------------------------------------------------------------------------
-class Engine:
+class AdaptationEngine:
     """Evaluates an Adaptation Model against measurements, one `tick` at a time.
 
     ``deployment_selection`` may be partial; it is completed with `complete_deployment`. The
@@ -1102,7 +1058,7 @@ class Engine:
 
     def _clamp_all(self, selection: frozenset[str]) -> list[float | None]:
         active = self.deployment | selection
-        return [_clamp(c, v, active) for c, v in zip(self._cvs, self._requested, strict=True)]
+        return [clamp(c, v, active) for c, v in zip(self._cvs, self._requested, strict=True)]
 
 
 _UNSEEN = object()
@@ -1245,41 +1201,6 @@ def _due(timed: list[_RuleSchedule], now: float) -> bool:
     return any(r.last is None or now - r.last >= r.period - 1e-9 for r in timed)  # type: ignore[operator]
 
 
-def clamp_cv(
-    fm: FeatureModel, active: Collection[str], values: Mapping[str, float]
-) -> tuple[dict[str, float], list[str]]:
-    """CV values clamped into their attributes' bounds and the NFRs of the ``active``
-    features (as the engine clamps its own), and the names that are no CV attribute."""
-    table = {c.key: c for c in _cv_table(fm)}
-    active_set = frozenset(active)
-    out: dict[str, float] = {}
-    unknown = []
-    for name, value in values.items():
-        cv = table.get(name)
-        if cv is None or isinstance(value, bool) or not isinstance(value, int | float):
-            unknown.append(name)
-            continue
-        if value != value:  # NaN
-            unknown.append(name)
-            continue
-        clamped = _clamp(cv, float(value), active_set)
-        if clamped is not None:
-            out[name] = clamped
-    return out, unknown
 
 
-def _clamp(cv: _Cv, value: float | None, active: frozenset[str]) -> float | None:
-    """A CV value clamped into its bounds, then into the NFRs of the selected features."""
-    if value is None:
-        return None
-    if cv.lower is not None and value < cv.lower:
-        value = cv.lower
-    if cv.upper is not None and value > cv.upper:
-        value = cv.upper
-    for owner, limit in cv.nfr_min:
-        if owner in active and value < limit:
-            value = limit
-    for owner, limit in cv.nfr_max:
-        if owner in active and value > limit:
-            value = limit
-    return value
+__getattr__ = _compat.renamed(__name__)  # old names, for one release (docs/api.md)

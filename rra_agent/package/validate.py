@@ -21,9 +21,7 @@ from types import ModuleType
 from typing import TypeVar
 
 from rra_agent.errors import Location, ModelError
-from rra_agent.models.loader import SystemPackage
 from rra_agent.models.measurements import PRIMITIVE_TYPES, DataType, Measurement
-from rra_agent.models.pkgimport import add_package_path, shadowed_problem
 from rra_agent.models.resolution import ConnectionRef, ResolutionModel, Transformation
 from rra_agent.models.system import (
     Command,
@@ -35,7 +33,9 @@ from rra_agent.models.system import (
     parse_endpoint,
     value_has_type,
 )
-from rra_agent.models.yamlload import PathItem, unknown_name
+from rra_agent.package.contents import SystemPackage
+from rra_agent.package.imports import add_package_path, shadowed_problem
+from rra_agent.package.yamlload import PathItem, unknown_name
 
 H = TypeVar("H", bound=Hashable)
 _LIST_RE = re.compile(r"^list\[(.+)\]$")
@@ -587,8 +587,6 @@ def _node_class_problem(dotted: str, root: Path) -> str | None:
     """Why the implementation ``pkg.module.Class`` (or ``pkg.module:Class``) does not import
     to a `rra_agent.node.Node` subclass (None when it does). Imports the module (its
     module-level code runs) and instantiates nothing."""
-    from rra_agent.node import Node
-
     modname, sep, clsname = dotted.replace(":", ".").rpartition(".")
     if not sep or not all(p.isidentifier() for p in [*modname.split("."), clsname]):
         return f"implementation '{dotted}' is not a dotted Python path (expected module.Class)"
@@ -603,12 +601,24 @@ def _node_class_problem(dotted: str, root: Path) -> str | None:
         known = [
             n
             for n, v in vars(module).items()
-            if isinstance(v, type) and issubclass(v, Node) and not n.startswith("_")
+            if _is_node_class(v) and not n.startswith("_")
         ]
         return unknown_name("node class", clsname, known, f" in '{modname}'")
-    if not (isinstance(cls, type) and issubclass(cls, Node)):
+    if not _is_node_class(cls):
         return f"'{dotted}' is not a subclass of rra_agent.node.Node"
     return None
+
+
+#: The SDK's base class, by name: a package's models are checked below the Node SDK (which
+#: this floor does not import), so a class is recognised by its ancestry's names.
+_NODE_BASE = "rra_agent.node.api.Node"
+
+
+def _is_node_class(obj: object) -> bool:
+    """Whether ``obj`` is a subclass of the Node SDK's `Node` (by its ancestry's names)."""
+    return isinstance(obj, type) and any(
+        f"{c.__module__}.{c.__qualname__}" == _NODE_BASE for c in obj.__mro__
+    )
 
 
 def _command_problem(impl: Command) -> str | None:
@@ -642,7 +652,7 @@ def _attribute_problem(obj: object, owner: str, attrs: list[str], dotted: str) -
 @contextlib.contextmanager
 def _on_sys_path(root: Path) -> Iterator[None]:
     """Put the package folder on sys.path as a node process has it (last: see
-    `rra_agent.models.pkgimport`); forget it and the modules imported from it after."""
+    `rra_agent.package.imports`); forget it and the modules imported from it after."""
     folder = str(root.resolve())
     before = set(sys.modules)
     present = folder in sys.path

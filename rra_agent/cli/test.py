@@ -65,7 +65,7 @@ def slug(text: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rra_agent.models.loader import flatten_errors
+    from rra_agent.package.loader import flatten_errors
     from rra_agent.scenario.model import ScenarioCase, load_scenario
     from rra_agent.scenario.runner import (
         describe_failure,

@@ -1,73 +1,26 @@
-"""The Node SDK, and ``python -m rra_agent.node``: one component node as its own process.
-
-Write a component as a `Node` subclass. A node's logic only sees a `NodeContext`
-(parameters, ``publish``, clock, active flag) and the events it is handed (``on_message``,
-``step``, ``on_params``...), so the same class runs
-
-- on the bus, in its own process: ``python -m rra_agent.node``, driven by
-  `rra_agent.bus.runtime.NodeRuntime`. The node's `NodeSpec` comes as JSON in
-  ``RRA_NODE_SPEC`` (or ``--spec FILE``) and the bus configuration in ``RRA_BUS_CONFIG``;
-  both are set by the host agent that starts it. Exit status: 0 after a clean shutdown, 2
-  when the spec or implementation is unusable (the supervisor does not restart it), 1 when
-  an exception of the node's code ended it (traceback in its log, a report for its host
-  agent: `rra_agent.failure`);
-- in a unit test, without any bus: `NodeHarness` (like dora's MockNode).
-
-`NodeCore` is the transport-independent middle: it owns the node instance, its parameters,
-ports (the key expressions each is bound to), the active flag and the counters, and answers
-control requests (`rra_agent.bus.messages.NodeRequest`). Both runtimes wrap it.
-"""
+"""The node's machinery, whatever carries it: `NodeCore` owns the node instance, its
+parameters, ports (the key expressions each is bound to), the active flag and the counters,
+and answers control requests (`rra_agent.bus.messages.NodeRequest`). The bus runtime
+(`rra_agent.node.runtime`), a component container (`rra_agent.node.container`) and the test
+harness (`rra_agent.node.harness`) each wrap one; node code never sees it (it sees its
+`rra_agent.node.api.NodeContext`)."""
 
 from __future__ import annotations
 
-import argparse
-import os
-import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
-from pathlib import Path
-from typing import Any, ClassVar, Protocol
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol
 
 import msgspec
 
-from rra_agent import failure, trace
+from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD, Counters, RateLimitedLog
-from rra_agent.bus.messages import NodeSpec
+from rra_agent.bus.data import DATA_DECODER, DATA_ENCODER
 from rra_agent.core.election import Term, newer
-from rra_agent.errors import RraError
 from rra_agent.models.system import ParamType, coerce_parameter
-
-
-def _enc_hook(obj: Any) -> Any:
-    """Let nodes publish numpy arrays and scalars without importing numpy here."""
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
-
-
-_DATA_ENC = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
-_DATA_DEC = msgspec.msgpack.Decoder()
-
-
-def encode_data(data: Any) -> bytes:
-    return _DATA_ENC.encode(data)
-
-
-def decode_data(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
-    """Decode a data sample; raise ValueError if it is not a msgpack map."""
-    try:
-        value = _DATA_DEC.decode(payload)
-    except msgspec.DecodeError as e:
-        raise ValueError(f"not msgpack: {e}") from None
-    if not isinstance(value, dict):
-        raise ValueError(f"a data sample must be a map, got {type(value).__name__}")
-    return value
-
-
-#: A raw subscription's callback: (key, payload, sender's stamp or None).
-RawCallback = Callable[[str, bytes, "float | None"], None]
+from rra_agent.node.api import Node, NodeContext, NodeError, RawCallback
 
 
 class Transport(Protocol):
@@ -90,107 +43,6 @@ class Transport(Protocol):
 REPLAY_MAX_AGE = 0.1
 
 
-class NodeContext:
-    """The node's view of the world: its name, parameters, clock, ``publish`` and active flag."""
-
-    def __init__(self, core: NodeCore) -> None:
-        self._core = core
-
-    @property
-    def name(self) -> str:
-        return self._core.spec.name
-
-    @property
-    def system(self) -> str:
-        return self._core.spec.system
-
-    @property
-    def params(self) -> dict[str, Any]:
-        """Current parameter values (read-only view; changes come through `Node.on_params`)."""
-        return dict(self._core.params)
-
-    def param(self, name: str, default: Any = None) -> Any:
-        return self._core.params.get(name, default)
-
-    @property
-    def active(self) -> bool:
-        return self._core.active
-
-    def now(self) -> float:
-        return self._core.clock()
-
-    def publish(self, port: str, data: Any) -> bool:
-        """Publish ``data`` (a map of the port's data type) on an output port.
-
-        Returns False (and publishes nothing) while the node is inactive.
-        """
-        return self._core.publish(port, data)
-
-    def log(self, message: str) -> None:
-        self._core.log(message)
-
-    def subscribe(self, key_expr: str, callback: RawCallback) -> None:
-        """Listen on a key expression outside the node's data ports, e.g.
-        ``Keys(self.system).inject_all`` (fault injections).
-
-        ``callback(key, payload, stamp)`` gets the raw payload (decode it yourself) and runs
-        under the node's lock, like `Node.on_message`; an exception in it is counted and
-        logged. Call it from `Node.on_start`; the subscription lasts as long as the node and
-        is not a port (no Rewire, not in Describe).
-        """
-        self._core.subscribe_raw(key_expr, callback)
-
-
-class Node:
-    """Base class of a component's logic. Override what you need; all hooks are optional.
-
-    ``rate_hz`` > 0 makes the runtime call `step` periodically; a ``rate_hz`` parameter in
-    the node's spec overrides the class attribute.
-    """
-
-    rate_hz: ClassVar[float] = 0.0
-
-    def __init__(self, ctx: NodeContext) -> None:
-        self.ctx = ctx
-
-    @classmethod
-    def warm_up(cls) -> None:
-        """Expensive set-up that does not depend on the node's spec (tables, gains, models),
-        done once per host: the host agent's fork server calls it after importing the class,
-        and every node forked from it inherits what it cached at module or class level. A
-        cold start (stop-then-start) then costs a fork, not a computation. Must not open
-        files, threads or sessions (they would be shared by every forked node)."""
-
-    def on_start(self) -> None:
-        """Called once, after ports and parameters are set up and before the node is ready."""
-
-    def on_message(self, port: str, data: dict[str, Any], stamp: float | None) -> None:
-        """A sample arrived on input ``port`` (``stamp``: the sender's wall-clock send time)."""
-
-    def step(self, now: float) -> None:
-        """Periodic work at ``rate_hz``."""
-
-    def on_params(self, changed: dict[str, Any]) -> None:
-        """Parameters changed at run time (``ctx.params`` already holds the new values)."""
-
-    def on_active(self, active: bool) -> None:
-        """The node was activated or deactivated."""
-
-    def export_state(self) -> Any:
-        """State handed to a replacement node (msgpack-encodable); None = nothing."""
-        return None
-
-    def import_state(self, state: Any) -> None:
-        """Take over the state exported by the node this one replaces."""
-
-    def on_stop(self) -> None:
-        """Called once when the node shuts down."""
-
-
-class NodeError(RraError):
-    """A control request a node refuses (unknown port or parameter, bad value)."""
-
-
 #: The node hook a control request runs (what a `Failure` says the node was doing).
 _HOOKS: dict[type, str] = {
     m.SetParams: "on_params",
@@ -201,38 +53,6 @@ _HOOKS: dict[type, str] = {
 }
 #: Distinct places of exceptions whose whole traceback a node logs (then one line each).
 _TRACED_SITES = 64
-
-
-def load_node_class(path: str, folders: Iterable[str] = ()) -> type[Node]:
-    """Import ``pkg.module.ClassName`` (or ``pkg.module:ClassName``) and check it is a Node.
-
-    ``folders``: the system package's folder(s), appended to ``sys.path``
-    (`rra_agent.models.pkgimport`): a package may ship its own node classes; one of its
-    modules hidden by a module of the same name elsewhere is an error saying so."""
-    import importlib
-
-    from rra_agent.models.pkgimport import add_package_path, shadowed_problem
-
-    folders = list(folders)
-    add_package_path(folders)
-    mod_name, sep, cls_name = path.replace(":", ".").rpartition(".")
-    if not sep:
-        raise NodeError(f"implementation {path!r} is not a dotted path 'pkg.module.Class'")
-    try:
-        module = importlib.import_module(mod_name)
-    except ImportError as e:
-        err = NodeError(f"cannot import {mod_name!r} for implementation {path!r}: {e}")
-        raise failure.tag(err, "import") from e
-    except Exception as e:  # the module itself raised (or does not compile)
-        failure.tag(e, "import")
-        raise
-    hidden = shadowed_problem(module, folders)
-    if hidden is not None:
-        raise NodeError(f"implementation {path!r}: {hidden}")
-    cls = getattr(module, cls_name, None)
-    if not (isinstance(cls, type) and issubclass(cls, Node)):
-        raise NodeError(f"{path!r} is not a subclass of rra_agent.node.Node")
-    return cls
 
 
 def _kind_of(value: Any) -> ParamType | None:
@@ -370,7 +190,7 @@ class NodeCore:
             self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return
         try:
-            data = _DATA_DEC.decode(payload)
+            data = DATA_DECODER.decode(payload)
         except msgspec.DecodeError as e:
             self._drop(port, f"not msgpack: {e}")
             return
@@ -405,7 +225,7 @@ class NodeCore:
             self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return False
         try:
-            ok = isinstance(_DATA_DEC.decode(payload), dict)
+            ok = isinstance(DATA_DECODER.decode(payload), dict)
         except msgspec.DecodeError:
             ok = False
         if not ok:
@@ -437,7 +257,7 @@ class NodeCore:
             raise NodeError(f"node {self.spec.name} has no output port {port!r}")
         if not self.active:
             return False
-        self.transport.publish(port, _DATA_ENC.encode(data), self.clock())
+        self.transport.publish(port, DATA_ENCODER.encode(data), self.clock())
         self.published += 1
         return True
 
@@ -624,201 +444,3 @@ class NodeCore:
             prefix = f"[{self.spec.name}] "
             self._logger(prefix + message.replace("\n", "\n" + prefix))
 
-
-class _CaptureTransport:
-    """The harness' transport: records what the node publishes and how ports are bound."""
-
-    def __init__(self) -> None:
-        self.published: list[tuple[str, bytes, float]] = []
-        self.bindings: dict[str, list[str]] = {}
-        self.raw: dict[str, list[RawCallback]] = {}
-
-    def publish(self, port: str, payload: bytes, stamp: float) -> None:
-        self.published.append((port, payload, stamp))
-
-    def rebind(
-        self, port: str, direction: str, keys: list[str], standby: list[str] | None = None
-    ) -> None:
-        self.bindings[port] = keys
-
-    def subscribe(self, key_expr: str, callback: RawCallback) -> None:
-        self.raw.setdefault(key_expr, []).append(callback)
-
-
-class NodeHarness:
-    """Drive a `Node` without a bus: send inputs, step time, make control requests.
-
-    >>> h = NodeHarness(MyNode, params={"gain": 2.0}, ports={"out": ("publish", "Cmd")})
-    >>> h.send("in", {"x": 1.0}); h.step(0.01)
-    >>> h.outputs("out")
-    """
-
-    def __init__(
-        self,
-        node_cls: type[Node],
-        *,
-        name: str = "node",
-        params: dict[str, Any] | None = None,
-        ports: dict[str, tuple[str, str]] | None = None,
-        active: bool = True,
-        state: Any = None,
-        now: float = 0.0,
-    ) -> None:
-        self.time = now
-        self.transport = _CaptureTransport()
-        spec = m.NodeSpec(
-            system="test",
-            name=name,
-            host="local",
-            implementation=f"{node_cls.__module__}.{node_cls.__qualname__}",
-            params=dict(params or {}),
-            ports={
-                p: m.PortSpec(direction=d, type=t, keys=[f"rra/test/data/{name}/{p}"])  # type: ignore[arg-type]
-                for p, (d, t) in (ports or {}).items()
-            },
-            active=active,
-            state=state,
-        )
-        self.logs: list[str] = []
-        self.core = NodeCore(
-            spec,
-            node_cls,
-            self.transport,
-            clock=lambda: self.time,
-            logger=self.logs.append,
-            monotonic=lambda: self.time,
-        )
-        self.core.start()
-
-    @property
-    def node(self) -> Node:
-        return self.core.node
-
-    def send(self, port: str, data: Any, stamp: float | None = None) -> None:
-        self.core.deliver(port, encode_data(data), stamp)
-
-    def send_raw(self, port: str, payload: bytes) -> None:
-        self.core.deliver(port, payload, None)
-
-    def deliver_raw(self, key_expr: str, payload: bytes, stamp: float | None = None) -> int:
-        """Hand ``payload`` to the node's raw subscriptions on exactly ``key_expr`` (as the
-        node subscribed it, e.g. ``rra/test/inject/**``); returns how many got it."""
-        callbacks = self.transport.raw.get(key_expr, [])
-        for cb in callbacks:
-            cb(key_expr, payload, stamp)
-        return len(callbacks)
-
-    def step(self, now: float | None = None) -> None:
-        if now is not None:
-            self.time = now
-        self.core.step(self.time)
-
-    def request(self, request: m.NodeRequest) -> m.Reply:
-        # Round-trip through the wire codec so the harness checks what the bus would carry.
-        codec: m.Codec[m.NodeRequest] = m.Codec(m.NodeRequest)
-        return self.core.handle(codec.decode(codec.encode(request)))
-
-    def outputs(self, port: str | None = None) -> list[dict[str, Any]]:
-        return [decode_data(p) for (q, p, _) in self.transport.published if port in (None, q)]
-
-    def iter_published(self) -> Iterator[tuple[str, dict[str, Any]]]:
-        for port, payload, _ in self.transport.published:
-            yield port, decode_data(payload)
-
-
-# ---- the process entry point ----------------------------------------------------------
-SPEC_ENV = "RRA_NODE_SPEC"
-#: Exit status of a node whose spec or implementation is unusable (not restarted at once).
-EXIT_CONFIG = 2
-#: Exit status of a node ended by an exception of its code (as Python's own).
-EXIT_FAILED = 1
-
-
-def read_spec(path: str | None) -> NodeSpec:
-    raw = Path(path).read_bytes() if path else os.environ.get(SPEC_ENV, "").encode()
-    if not raw:
-        raise ValueError(f"no node spec: set {SPEC_ENV} or pass --spec FILE")
-    return msgspec.json.decode(raw, type=NodeSpec)
-
-
-#: The implementation of a component container's process (`rra_agent.host.container`; its
-#: spec is made by the host agent, never taken from the bus).
-CONTAINER = "rra_agent.host.container"
-
-
-def run_node(spec: NodeSpec) -> int:
-    """Run a node (Python implementation) until it is told to stop; its exit status.
-
-    The bus configuration comes from ``RRA_BUS_CONFIG``. Used by ``python -m rra_agent.node``
-    and by the host agent's fork server. An exception that ends the node (in its import, its
-    constructor, ``import_state``, ``on_start``, or a ``sys.exit`` with a non-zero status) is
-    printed to its log with its traceback and reported to its host agent
-    (`rra_agent.failure`): exit status 2 when the spec or implementation is unusable, 1
-    for any other exception.
-    """
-    try:
-        return _run_node(spec)
-    except SystemExit as e:
-        if e.code not in (None, 0):
-            _crashed(spec, e, "run")
-        raise
-    except Exception as e:
-        _crashed(spec, e, "run")
-        return EXIT_FAILED
-
-
-def _run_node(spec: NodeSpec) -> int:
-    from rra_agent.bus.config import BusConfig
-
-    if spec.implementation == CONTAINER:
-        from rra_agent.host.container import run_container
-
-        return run_container(spec, BusConfig.from_env())
-    try:
-        if not isinstance(spec.implementation, str):
-            raise ValueError("an external-command implementation is run directly, not here")
-        trace.mark("node:import", spec.name)
-        node_cls = load_node_class(spec.implementation, spec.path)
-        bus = BusConfig.from_env()
-        trace.mark("node:imported", spec.name)
-    except (ValueError, RraError) as e:
-        _crashed(spec, e, "import")
-        return EXIT_CONFIG
-
-    from rra_agent.bus.runtime import NodeRuntime
-
-    runtime = NodeRuntime(spec, node_cls, bus)
-    try:
-        return runtime.run()
-    finally:
-        core = runtime.core
-        if core is not None and core.stop_failure is not None:  # a later report replaces it
-            failure.write_report(core.stop_failure)
-
-
-def _crashed(spec: NodeSpec, e: BaseException, during: str) -> None:
-    """The node ends by ``e``: its summary and traceback to the log, the report written."""
-    f = failure.describe(e, during, spec.path)
-    print(f"rra node {spec.name}: {failure.summary(f)}", file=sys.stderr, flush=True)
-    print(failure.formatted(e), file=sys.stderr, flush=True)
-    failure.write_report(f)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m rra_agent.node", description=__doc__)
-    parser.add_argument("--spec", help="node spec JSON file (default: $RRA_NODE_SPEC)")
-    args = parser.parse_args(argv)
-    try:
-        spec = read_spec(args.spec)
-    except (ValueError, OSError, msgspec.DecodeError) as e:
-        print(f"rra node: {e}", file=sys.stderr)
-        return EXIT_CONFIG
-    return run_node(spec)
-
-
-if __name__ == "__main__":
-    # Run the imported module's main, not this ``__main__`` copy's: implementations subclass
-    # ``rra_agent.node.Node``, which is not this copy's ``Node`` class.
-    from rra_agent.node import main as _main
-
-    sys.exit(_main())

@@ -10,18 +10,17 @@ reports every problem; cross-references are then checked by `validate_package`.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rra_agent.errors import ErrorGroup, LocatedError, ModelError, RraError
 from rra_agent.models.features import FeatureModel
+from rra_agent.models.manifest import MANIFEST, Manifest
 from rra_agent.models.measurements import MeasurementsModel
-from rra_agent.models.package import MANIFEST, Manifest
 from rra_agent.models.resolution import DeploymentResolutionModel, RuntimeResolutionModel
 from rra_agent.models.system import SystemModel
-from rra_agent.models.yamlload import YamlDoc, load_yaml
+from rra_agent.package.contents import SystemPackage
+from rra_agent.package.yamlload import YamlDoc, load_yaml
 
 if TYPE_CHECKING:
     from rra_agent.models.adaptation import AdaptationModel
@@ -33,36 +32,6 @@ YAML_MODELS: dict[str, type] = {
     "runtime": RuntimeResolutionModel,
     "measurements": MeasurementsModel,
 }
-
-
-@dataclass(frozen=True)
-class SystemPackage:
-    """Every model of one system package, loaded, plus the YAML trees to locate errors."""
-
-    root: Path
-    manifest: Manifest
-    features: FeatureModel
-    system: SystemModel
-    deployment: DeploymentResolutionModel
-    runtime: RuntimeResolutionModel
-    measurements: MeasurementsModel
-    #: The Adaptation Model from the rule DSL, or None when the package has none.
-    adaptation: AdaptationModel | None = None
-    #: ``"manifest"`` (when rra.yaml exists), ``"system"``, ``"deployment"``, ``"runtime"``,
-    #: ``"measurements"`` -> the composed YAML file.
-    docs: Mapping[str, YamlDoc] = field(default_factory=dict)
-
-    @property
-    def name(self) -> str:
-        return self.manifest.name
-
-    def file(self, model: str) -> Path:
-        """The path of a model file by its manifest field (``"system"``, ...; ``"manifest"``)."""
-        return self.root / (MANIFEST if model == "manifest" else getattr(self.manifest, model))
-
-    def doc(self, model: str) -> YamlDoc:
-        """The composed YAML of a model (an empty one when there is none, e.g. no rra.yaml)."""
-        return self.docs.get(model) or YamlDoc(str(self.file(model)), None)
 
 
 def package_root(path: str | Path) -> Path:
@@ -115,7 +84,7 @@ def load_package(path: str | Path, *, validate: bool = True) -> SystemPackage:
         **{k: model for k, (model, _) in models.items()},
     )
     if validate:
-        from rra_agent.models.validate import validate_package
+        from rra_agent.package.validate import validate_package
 
         ErrorGroup.raise_if_any(validate_package(pkg, implementations=False))
     return pkg

@@ -211,11 +211,13 @@ def hub_port() -> int:
 
 @pytest.fixture
 def bus(hub_port: int):
-    """A BusConfig connecting to this test's hub endpoint on loopback, multicast off (the
-    shipped lease: a stall of the hub does not cut this session off)."""
+    """A BusConfig connecting to this test's hub endpoint on loopback, multicast off. The
+    test's own session keeps a 500 ms lease (the systems it starts run with the shipped
+    one): with the 2 s lease, test_host_agent's 17 MiB sample was lost before the node
+    counted it in half the runs under --cpu-hog (its publisher drops under congestion)."""
     from rra_agent.bus.config import BusConfig
 
-    return BusConfig(connect=[f"tcp/127.0.0.1:{hub_port}"], multicast=False)
+    return BusConfig(connect=[f"tcp/127.0.0.1:{hub_port}"], multicast=False, lease_ms=500)
 
 
 # ---- a whole system: `rra up` of tests/data/relay_system ---------------------------------------

@@ -110,10 +110,11 @@ class _Alias(types.ModuleType):
         if attr.startswith("__"):
             raise AttributeError(attr)
         for target in self.__targets:
+            name = RENAMED.get((target, attr), attr)
             module = importlib.import_module(target)
-            if hasattr(module, attr):
-                _warn(f"{self.__name__}.{attr}", f"{target}.{attr}")
-                return getattr(module, attr)
+            if name in vars(module):
+                _warn(f"{self.__name__}.{attr}", f"{target}.{name}")
+                return vars(module)[name]
         raise AttributeError(f"module {self.__name__!r} has no attribute {attr!r}")
 
 

@@ -17,6 +17,7 @@ from conftest import copy_mini, plant, position, run_rra
 
 from rra_agent.cli import commands as cli
 from rra_agent.cli import main
+from rra_agent.cli.resolve import split_selection
 from rra_agent.errors import RraError
 
 pytest.importorskip("rra_agent.dsl.uvl")
@@ -420,7 +421,7 @@ def test_any_rra_error_is_one_line_without_traceback(
 
 @pytest.mark.system
 def test_split_selection() -> None:
-    assert cli.split_selection(["A,B", " C ", ",", "D,"]) == ["A", "B", "C", "D"]
+    assert split_selection(["A,B", " C ", ",", "D,"]) == ["A", "B", "C", "D"]
 
 
 # ---- with adaptation rules -------------------------------------------------------------------
@@ -453,5 +454,5 @@ def test_validate_parses_the_adaptation_rules(
 
 @pytest.mark.system
 def test_lazy_handlers_import_on_use() -> None:
-    handler = cli.lazy("rra_agent.cli.commands:split_selection")
+    handler = cli.lazy("rra_agent.cli.resolve:split_selection")
     assert handler(["A,B"]) == ["A", "B"]  # type: ignore[arg-type]

@@ -27,15 +27,21 @@ import msgspec
 
 from rra_agent.models.features import FeatureModel
 from rra_agent.models.resolution import ResolutionModel, Transformation
-from rra_agent.models.system import Component, Connection, SystemModel, parse_endpoint
+from rra_agent.models.system import (
+    Component,
+    Connection,
+    RuntimeConfiguredSystemModel,
+    SystemModel,
+    parse_endpoint,
+)
 
 
 def effective_model(
-    current: SystemModel,
-    target: SystemModel,
+    current: RuntimeConfiguredSystemModel,
+    target: RuntimeConfiguredSystemModel,
     structure_failed: Collection[str],
     parameters_failed: Collection[str] = (),
-) -> SystemModel:
+) -> RuntimeConfiguredSystemModel:
     """The model that runs after applying ``current`` -> ``target`` where the changes of the
     components in ``structure_failed`` (launch, stop, restart, wiring) and the parameter
     changes of those in ``parameters_failed`` failed and were undone."""

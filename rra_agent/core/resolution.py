@@ -56,8 +56,10 @@ from rra_agent.models.resolution import ConnectionRef, ResolutionModel, Transfor
 from rra_agent.models.system import (
     Component,
     Connection,
+    DeploymentConfiguredSystemModel,
     Parameter,
     ParamValue,
+    RuntimeConfiguredSystemModel,
     SystemModel,
     coerce_parameter,
     parse_endpoint,
@@ -83,7 +85,7 @@ def resolve_deployment(
     model: ResolutionModel,
     fm: FeatureModel,
     selection: Collection[str],
-) -> SystemModel:
+) -> DeploymentConfiguredSystemModel:
     """The Deployment-time Configured System Model for a deployment-time selection.
 
     ``selection`` holds feature names or aliases; features of ``model`` not selected are
@@ -96,12 +98,12 @@ def resolve_deployment(
 
 
 def resolve_runtime(
-    configured: SystemModel,
+    configured: DeploymentConfiguredSystemModel,
     model: ResolutionModel,
     fm: FeatureModel,
     selection: Collection[str],
     cv: Mapping[str, float],
-) -> SystemModel:
+) -> RuntimeConfiguredSystemModel:
     """The target Run-time Configured System Model for a run-time selection.
 
     ``configured`` is a Deployment-time Configured System Model (no deployment-time variation

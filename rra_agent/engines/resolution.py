@@ -74,7 +74,13 @@ from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hoo
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.errors import RraError
-from rra_agent.models.system import Component, ParamValue, SystemModel, parse_endpoint
+from rra_agent.models.system import (
+    Component,
+    ParamValue,
+    RuntimeConfiguredSystemModel,
+    SystemModel,
+    parse_endpoint,
+)
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
@@ -132,7 +138,11 @@ class ResolutionEngineProcess(EngineProcess):
         #: leader publishes them with its selections (kept so that it resumes with them).
         self.forced: dict[str, bool] = {}
         self.conflicts: list[m.ConflictReport] = []
-        self.current = msgspec.structs.replace(dep.configured, components=[], connections=[])
+        #: The Run-time Configured System Model in effect: what the running system realises
+        #: (the target of what was decided, less what failed; `rra_agent.core.effect`).
+        self.runtime_model: RuntimeConfiguredSystemModel = msgspec.structs.replace(
+            dep.configured, components=[], connections=[]
+        )
         #: What is in effect (the running system shows it), beside what was decided.
         self.effective: frozenset[str] = self.selection
         self.effective_cv: dict[str, float] = dict(self.cv)
@@ -375,7 +385,7 @@ class ResolutionEngineProcess(EngineProcess):
         self.executor.running = {s.name: s for s in state.running}
         self.executor.standby = {s.name: s for s in state.standby}
         try:
-            self.current = self.target(self.effective, self.effective_cv)
+            self.runtime_model = self.target(self.effective, self.effective_cv)
         except RraError as e:
             self._event("takeover", f"cannot rebuild the model: {e}", None, level="error")
             return
@@ -473,7 +483,7 @@ class ResolutionEngineProcess(EngineProcess):
         t0 = time.perf_counter()
         try:
             target = self.target(self.selection, self.cv)
-            plan = diff(self.current, target)
+            plan = diff(self.runtime_model, target)
         except RraError as e:
             self._retry_later()
             self._changed()
@@ -509,13 +519,13 @@ class ResolutionEngineProcess(EngineProcess):
         """The effective model and what it shows, after ``outcome``."""
         pkg = self.dep.package
         effective = effective_model(
-            self.current, target, outcome.failed_structure, outcome.failed_parameters
+            self.runtime_model, target, outcome.failed_structure, outcome.failed_parameters
         )
         self.effective, self.effective_cv = in_effect(
             pkg.features, pkg.runtime, self.selection, self.effective, effective, target,
             self.cv, self.effective_cv,
         )  # fmt: skip
-        self.current = effective
+        self.runtime_model = effective
         self.degraded = [f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures]
         if outcome.ok:
             self._retry_at, self._backoff = None, RETRY_FIRST
@@ -739,17 +749,17 @@ class ResolutionEngineProcess(EngineProcess):
                 finally:
                     self.executor.standby[node] = self.executor.running.pop(node)
             return None
-        want, have = target.component(node), self.current.component(node)
+        want, have = target.component(node), self.runtime_model.component(node)
         if want is None or have is None or want.parameters.keys() != have.parameters.keys():
             return None  # not running as such: it starts with the new values
         changed = msgspec.structs.replace(have, parameters=want.parameters)
         model = msgspec.structs.replace(
-            self.current,
-            components=[changed if c.name == node else c for c in self.current.components],
+            self.runtime_model,
+            components=[changed if c.name == node else c for c in self.runtime_model.components],
         )
-        outcome = self.executor.execute(diff(self.current, model))
+        outcome = self.executor.execute(diff(self.runtime_model, model))
         if outcome.ok:
-            self.current = model
+            self.runtime_model = model
         return outcome
 
     # ---- reconciliation ------------------------------------------------------------------
@@ -757,7 +767,7 @@ class ResolutionEngineProcess(EngineProcess):
         """Make the running system match the model in effect (at the first deployment: the
         decided one); see `rra_agent.engines.reconcile`."""
         try:
-            target = self.current if self.deployed else self.target(self.selection, self.cv)
+            target = self.runtime_model if self.deployed else self.target(self.selection, self.cv)
         except RraError as e:
             self._event("reconcile", f"cannot resolve the model: {e}", None, level="error")
             return None
@@ -795,7 +805,7 @@ class ResolutionEngineProcess(EngineProcess):
         self.executor.running, self.executor.standby = running, standby
         if not plan.steps and not missing:
             self.verified.update(observed.described)
-            self.current, self.deployed = target, True
+            self.runtime_model, self.deployed = target, True
             self._update_hosts(expected, standby, observed)
             if first:
                 self._changed()
@@ -867,7 +877,7 @@ class ResolutionEngineProcess(EngineProcess):
             pkg.features, pkg.runtime, self.selection, frozenset() if first else self.effective,
             effective, decided, self.cv, self.effective_cv,
         )  # fmt: skip
-        self.current = effective
+        self.runtime_model = effective
         if not outcome.ok:
             self.degraded = [f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures]
             self._retry_later()

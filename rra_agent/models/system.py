@@ -284,3 +284,12 @@ class SystemModel(FrozenModel, frozen=True):
 
     def component(self, name: str) -> Component | None:
         return next((c for c in self.components if c.name == name), None)
+
+
+#: The paper's Configured System Models are system models with variation points resolved:
+#: the Deployment-time one (`rra_agent.core.resolution.resolve_deployment`) has only its
+#: run-time variation points left; the Run-time one (`resolve_runtime`: what runs for a
+#: run-time selection and its CV values; `rra_agent.core.effect.effective_model`: what runs
+#: after a plan applied in part) has none. The names say which one a function takes or gives.
+DeploymentConfiguredSystemModel = SystemModel
+RuntimeConfiguredSystemModel = SystemModel

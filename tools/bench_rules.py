@@ -13,7 +13,10 @@ Two models:
   random values (the worst case: many conditions and so many features flip every tick).
 
 Each line also gives the tick time without `apply_requests` (rra_agent.core.features), which
-turns the fired requests into a valid selection: the rest is this module's own cost.
+turns the fired requests into a valid selection: the rest is this module's own cost. The
+lines marked "explained" tick as the Adaptation Engine leader does, with ``explain=True``:
+each change of the selection or of a CV value also names the action that made it, what it
+read and what it overruled (`TickResult.why`).
 
 Run: ``.venv/bin/python tools/bench_rules.py [--ticks N] [--seed S]``. Targets on the 2-core
 reference machine: Fig. 5 <= 20 us, 1000 rules <= 1 ms.
@@ -77,12 +80,15 @@ def fig5(ticks: int) -> dict[str, tuple[float, ...]]:
 
     steady = [vector(i, contexts[5]) for i in range(ticks)]
     switching = [vector(i, contexts[i % len(contexts)]) for i in range(ticks)]
-    return {
-        "Fig. 5, steady context": run_split(AdaptationEngine(fm, {"Manipulation"}, model), steady),
-        "Fig. 5, context switching every tick": run_split(
-            AdaptationEngine(fm, {"Manipulation"}, model), switching
-        ),
-    }
+    out = {}
+    for explain, tag in ((False, ""), (True, ", explained")):
+        engine = AdaptationEngine(fm, {"Manipulation"}, model)
+        out[f"Fig. 5, steady context{tag}"] = run_split(engine, steady, explain=explain)
+        engine = AdaptationEngine(fm, {"Manipulation"}, model)
+        out[f"Fig. 5, context switching every tick{tag}"] = run_split(
+            engine, switching, explain=explain
+        )
+    return out
 
 
 # ---- generated model ------------------------------------------------------------------------
@@ -264,7 +270,7 @@ class _Timed:
 
 
 def run_split(
-    engine: AdaptationEngine, vectors: list[dict], warmup: int = 100
+    engine: AdaptationEngine, vectors: list[dict], warmup: int = 100, *, explain: bool = False
 ) -> tuple[float, ...]:
     """Median and p99 of the tick, and median of the tick without apply_requests."""
     timer = _Timed()
@@ -276,7 +282,7 @@ def run_split(
             now += 0.01
             timer.spent = 0
             t0 = time.perf_counter_ns()
-            engine.tick(now, vector)
+            engine.tick(now, vector, explain=explain)
             dt = time.perf_counter_ns() - t0
             if i >= warmup:
                 total.append(dt)
@@ -307,11 +313,11 @@ def generated(ticks: int, seed: int) -> dict[str, tuple[float, ...]]:
         f"({len(found)} conflicts)"
     )
     out = {}
-    for drift, label in ((True, "drifting values"), (False, "random jumps")):
-        vectors = measurement_stream(random.Random(seed + 1), ticks, drift)
-        out[f"{N_RULES} rules, 20/{N_MEAS} measurements new per tick, {label}"] = run_split(
-            AdaptationEngine(fm, (), model), vectors
-        )
+    for explain, tag in ((False, ""), (True, ", explained")):
+        for drift, label in ((True, "drifting values"), (False, "random jumps")):
+            vectors = measurement_stream(random.Random(seed + 1), ticks, drift)
+            name = f"{N_RULES} rules, 20/{N_MEAS} measurements new per tick, {label}{tag}"
+            out[name] = run_split(AdaptationEngine(fm, (), model), vectors, explain=explain)
     return out
 
 

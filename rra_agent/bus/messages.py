@@ -14,7 +14,8 @@ Channels and their unions:
 - ``state/<role>``      `StateMessage`    = EngineState
 - ``node/<n>/ctl``      `NodeRequest` -> `Reply`
 - ``host/<h>/ctl``      `HostRequest` -> `Reply`
-- ``engine/<e>/ctl``    `EngineRequest` -> `Reply` (``ForceFeatures``: the Adaptation Engine's)
+- ``engine/<e>/ctl``    `EngineRequest` -> `Reply` (``ForceFeatures``, ``Explain``: the
+  Adaptation Engine's; ``Inject``, ``OverrideMeasurement``: the Context Monitor's)
 - ``inject/**``         `Injection`
 
 Requests that change the running system carry a `Fence`: the epoch and name of the engine
@@ -74,6 +75,12 @@ class Measurement(Msg, tag="measurement"):
     stamp: float
     #: Send times of the source samples it was computed from, by ``component.port``.
     sources: dict[str, float] = {}
+    #: An operator's override (``rra inject measurement``): who set it ("": computed), until
+    #: when (wall clock), and the fence of the monitor leader that published it (an override
+    #: without its leader's fence is refused).
+    override: str = ""
+    until: float = 0.0
+    fence: Fence | None = None
 
 
 CtxMessage = Measurement
@@ -87,6 +94,39 @@ class FiredRule(Msg, tag="fired"):
     where: str = ""
     #: Measurements the rule read, with the stamps of the values it saw.
     reads: dict[str, float] = {}
+    #: ... and the values it saw.
+    values: dict[str, float | int | bool | str] = {}
+
+
+class Overruled(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A rule that fired wanting something else for a target, and why it did not prevail."""
+
+    rule: str
+    action: str
+    where: str = ""
+    #: ``on``/``off``, an alternative, or the CV value it computed.
+    wants: str = ""
+    #: ``priority``, ``later_rule``, ``operator``, ``nfr``, ``bounds``, ``unavailable``,
+    #: ``refused`` or ``waiting`` (`rra_agent.core.adaptation.Overruled`).
+    why: str
+    detail: str = ""
+
+
+class Why(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """Why a run-time feature or a CV attribute has its value: what changed it last."""
+
+    target: str
+    kind: Literal["feature", "cv"]
+    #: ``on``/``off``, or the CV value.
+    value: str
+    #: When that change was decided (nil: before the engine's first change of it).
+    since: float | None = None
+    #: ``rule``, ``nfr``, ``operator``, ``unavailable``, ``model``, ``default``, ``resumed``.
+    reason: str
+    #: The rules that made the change, with what they read.
+    by: list[FiredRule] = []
+    detail: str = ""
+    overruled: list[Overruled] = []
 
 
 class ConflictReport(Msg, tag="conflict"):
@@ -124,6 +164,7 @@ class Selection(Msg, tag="selection"):
     cv: dict[str, float] = {}
     #: True when the selection differs from the previous one (heartbeats repeat it unchanged).
     changed: bool = False
+    #: The rules that changed it (not every rule that fired), with what they read.
     cause: list[FiredRule] = []
     rejected: list[str] = []
     #: The Adaptation Engine leader that decided it (a selection from an older leader, or
@@ -133,6 +174,8 @@ class Selection(Msg, tag="selection"):
     forced: dict[str, bool] = {}
     #: The run-time conflicts in force (``state: started``).
     conflicts: list[ConflictReport] = []
+    #: Each feature and CV value this selection changes, and why (empty on heartbeats).
+    why: list[Why] = []
 
 
 SelectionMessage = Selection | ConflictReport
@@ -157,6 +200,12 @@ class AdaptationEvent(Msg, tag="event"):
     selection: int | None = None
     #: Conflicts: the measurement values that made it.
     context: dict[str, float | int | bool | str] = {}
+    #: An adaptation: each feature and CV value it changed, and why (the selection's).
+    why: list[Why] = []
+    #: Who asked (``user@host``), for operators' requests (``injection``...).
+    operator: str = ""
+    #: ``injection``: what was injected.
+    injection: Inject | None = None
 
 
 class Failure(
@@ -458,6 +507,25 @@ class NodeBatch(Msg, tag="node_batch"):
 ContainerRequest = LoadNode | UnloadNode | NodeBatch | Ping | Stats | Describe
 
 
+# ---- scenario injections ----------------------------------------------------------------
+class Inject(Msg, tag="inject"):
+    """A fault or context change.
+
+    Example: ``{"t": "inject", "kind": "break_motor", "args": {"k": 2}}``. Sent to the
+    Context Monitor leader's control (``rra inject``), it is published on ``inject/<kind>``
+    and recorded as an ``injection`` event naming ``operator``.
+    """
+
+    kind: str
+    target: str = ""
+    args: dict[str, Any] = {}
+    stamp: float = 0.0
+    operator: str = ""
+
+
+Injection = Inject
+
+
 # ---- engine control ---------------------------------------------------------------------
 class Status(Msg, tag="status"):
     pass
@@ -472,6 +540,10 @@ class SetParam(Msg, tag="set_param"):
     node: str
     params: dict[str, Any] = {}
     reset: list[str] = []
+    #: Who asks (``user@host``); with ``injection`` the event is an ``injection`` (``rra
+    #: inject set_params``) rather than a ``param`` one.
+    operator: str = ""
+    injection: bool = False
 
 
 class GetState(Msg, tag="get_state"):
@@ -497,8 +569,40 @@ class Retry(Msg, tag="retry"):
     operator: str = ""
 
 
+class Explain(Msg, tag="explain"):
+    """Ask the Adaptation Engine leader why the run-time features and CV values are what
+    they are (``rra why``): ``Ok`` with ``{"why": [Why...]}`` for ``targets`` (empty: all),
+    and with ``reachable`` the run-time configurations its rules can reach from the current
+    one (``{"reachable": {...}}``)."""
+
+    targets: list[str] = []
+    reachable: bool = False
+
+
+class OverrideMeasurement(Msg, tag="override_measurement"):
+    """An operator makes the Context Monitor leader publish ``value`` for measurement
+    ``name`` instead of the computed one for ``duration`` seconds (``rra inject
+    measurement``); 0 ends an override at once. Refused for an unknown measurement or a value
+    its declaration does not admit."""
+
+    name: str
+    value: float | int | bool | str
+    duration: Annotated[float, msgspec.Meta(ge=0.0, le=86400.0)]
+    operator: str = ""
+
+
 EngineRequest = (
-    Status | Describe | Ping | Stats | SetParam | GetState | ForceFeatures | Retry
+    Status
+    | Describe
+    | Ping
+    | Stats
+    | SetParam
+    | GetState
+    | ForceFeatures
+    | Retry
+    | Explain
+    | Inject
+    | OverrideMeasurement
 )
 
 
@@ -556,22 +660,6 @@ class EngineState(Msg, tag="engine_state"):
 
 
 StateMessage = EngineState
-
-
-# ---- scenario injections ----------------------------------------------------------------
-class Inject(Msg, tag="inject"):
-    """A fault or context change.
-
-    Example: ``{"t": "inject", "kind": "break_motor", "args": {"k": 2}}``.
-    """
-
-    kind: str
-    target: str = ""
-    args: dict[str, Any] = {}
-    stamp: float = 0.0
-
-
-Injection = Inject
 
 
 # ---- codecs -----------------------------------------------------------------------------

@@ -114,9 +114,7 @@ def _requests(
             return [("deactivate", f.name) for f in fs]
         case SelectVariant():
             best = [
-                v
-                for v in ranked_variants(fm, action)
-                if v in selectable and v not in unavailable
+                v for v in ranked_variants(fm, action) if v in selectable and v not in unavailable
             ]
             return [("activate", best[0])] if best else []
     return []

@@ -18,6 +18,15 @@ Operators force run-time features on or off (``rra select``, `ForceFeatures` on
 released, and carried in every `Selection` (``forced``), which the Run-time Resolution
 AdaptationEngine keeps in its state: a restarted Adaptation Engine resumes with them.
 
+Why: the leader explains each change it decides (`rra_agent.engines.explain`): a selection
+names the rules that changed it (``cause``), and for each feature and CV value it changes,
+the values those rules read and the rules that were overruled, and why (``why``). A standby
+keeps its leader's explanations. ``rra why`` asks the leader (`Explain`) about the current
+state, and the configurations the rules can reach from it.
+
+A measurement marked as an operator's override (``rra inject measurement``) is taken only
+with the fence of the live Context Monitor leader: anyone else's is refused and counted.
+
 It never publishes a default selection over a running system: before it evaluates anything
 it resumes from the system's current selection and CV values, asked from the Run-time
 Resolution Engine (``GetState``), and from the newest measurements, asked from the Context
@@ -44,9 +53,11 @@ from rra_agent.core.availability import requirements, unavailable_features
 from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
 from rra_agent.core.monitor import measurement_problem
 from rra_agent.core.overrides import OverrideError
+from rra_agent.core.reachable import reachable
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
+from rra_agent.engines.explain import causes, core_why, reachable_summary, wire_why
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import SelectionError
@@ -100,8 +111,11 @@ class AdaptationEngineProcess(EngineProcess):
         #: Run-time Resolution Engine leader whose state says which are unavailable.
         self.needs = requirements(dep.package.features, dep.package.runtime)
         self.resolution: LeaderWatch | None = None
+        #: The Context Monitor leader: an operator's override carries its fence.
+        self.monitor: LeaderWatch | None = None
         #: Rejections as unavailable already reported: (rule, feature).
         self._unavailable_told: set[tuple[str, str]] = set()
+        self._reach: tuple[Any, dict[str, Any]] | None = None
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -112,6 +126,8 @@ class AdaptationEngineProcess(EngineProcess):
         if problem is not None:  # forged on the bus: the Context Monitor never sends these
             self.refuse(problem[0], f"measurement {msg.name}: {problem[1]}")
             return
+        if msg.override and not self._from_monitor(msg):
+            return
         with self.lock:
             self.counters.received += 1
             self.measurements[msg.name] = (msg.value, msg.stamp)
@@ -120,6 +136,14 @@ class AdaptationEngineProcess(EngineProcess):
         if schedule and not self.loop.run_or_post(self._evaluate_posted):
             with self.lock:
                 self._scheduled = False
+
+    def _from_monitor(self, msg: m.Measurement) -> bool:
+        """An override comes only from the live Context Monitor leader (its fence)."""
+        if self.monitor is not None and self.monitor.is_leader(msg.fence):
+            return True
+        who = msg.fence.leader if msg.fence else "nobody"
+        self.refuse("forged override", f"override of {msg.name} by {msg.override} from {who}")
+        return False
 
     def _on_selection(self, sample: zenoh.Sample) -> None:
         msg = receive(sample.payload, "selection", _SEL)
@@ -227,6 +251,7 @@ class AdaptationEngineProcess(EngineProcess):
             self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
             return
         self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
+        self.engine.note(core_why(w) for w in msg.why)
         self.engine.forced = dict(msg.forced)
         self.conflicts.adopt(_live(c) for c in msg.conflicts)
         self.seq = max(self.seq, msg.seq)
@@ -244,7 +269,7 @@ class AdaptationEngineProcess(EngineProcess):
             values, changed = dict(self.measurements), self.changed
             self.changed = set()
         now = time.time()
-        result = self.engine.tick(now, values, changed=changed)
+        result = self.engine.tick(now, values, changed=changed, explain=self.leading)
         if not self.leading:
             return result
         started: list[LiveConflict] = []
@@ -316,15 +341,8 @@ class AdaptationEngineProcess(EngineProcess):
 
     def publish(self, result: TickResult, values: dict, now: float) -> None:
         self.seq += 1
-        cause = [
-            m.FiredRule(
-                rule=f.rule if f.ruleset is None else f"{f.ruleset}.{f.rule}",
-                action=f.action,
-                where=f"{f.span.file}:{f.span.line}:{f.span.col}" if f.span else "",
-                reads={n: values[n][1] for n in f.reads if n in values},
-            )
-            for f in result.fired
-        ]
+        why = [wire_why(w) for w in result.why]
+        cause = causes(why)
         self._send(
             m.Selection(
                 seq=self.seq,
@@ -338,6 +356,7 @@ class AdaptationEngineProcess(EngineProcess):
                 fence=self.fence,
                 forced=dict(self.engine.forced),
                 conflicts=[_report(c, c.since, None) for c in self.conflicts.current],
+                why=why,
             )
         )
         self.last_sent = now
@@ -349,6 +368,7 @@ class AdaptationEngineProcess(EngineProcess):
                 universe=self.dep.package.features.runtime_features(),
                 fired=[f"{c.rule}: {c.action}" for c in cause],
                 changed=result.changed,
+                why=why,
             )
 
     def _send(self, msg: m.Selection | m.ConflictReport) -> None:
@@ -360,7 +380,38 @@ class AdaptationEngineProcess(EngineProcess):
         match request:
             case m.ForceFeatures(features=features, operator=who):
                 return self.force(dict(features), who)
+            case m.Explain():
+                return self.explain(request)
         return super().serve(request)
+
+    def explain(self, request: m.Explain) -> m.Reply:
+        """Why the current features and CV values are what they are (``rra why``)."""
+        if not self.resumed:
+            return m.Err(message=f"{self.name} has not resumed yet", code="not_leader")
+        try:
+            why = self.engine.why(request.targets or None)
+        except KeyError as e:
+            return m.Err(message=str(e.args[0]), code="unknown")
+        result: dict[str, Any] = {
+            "why": [msgspec.to_builtins(wire_why(w)) for w in why],
+            "selection": sorted(self.engine.selection),
+            "forced": _choices(self.engine.forced),
+        }
+        if request.reachable:
+            result["reachable"] = self._reachable()
+        return m.Ok(result=result)
+
+    def _reachable(self) -> dict[str, Any]:
+        """The configurations the rules can reach from the current one (cached per state)."""
+        e = self.engine
+        key = (e.selection, tuple(sorted(e.forced.items())), frozenset(e.unavailable))
+        if self._reach is None or self._reach[0] != key:
+            pkg = self.dep.package
+            assert pkg.adaptation is not None
+            found = reachable(pkg.features, self.dep.selection, pkg.adaptation, e.selection,
+                              forced=e.forced, unavailable=e.unavailable.keys())  # fmt: skip
+            self._reach = (key, reachable_summary(found))
+        return self._reach[1]
 
     def force(self, features: dict[str, str], who: str) -> m.Reply:
         """Force (or release) run-time features, then evaluate and publish at once."""
@@ -392,10 +443,12 @@ class AdaptationEngineProcess(EngineProcess):
             express=True,
         )
         self.resolution = LeaderWatch(session, self.keys, "resolution")
+        self.monitor = LeaderWatch(session, self.keys, "monitor")
         return [
             self.publisher,
             self.events.publisher,
             self.resolution,
+            self.monitor,
             session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
             session.declare_subscriber(self.keys.selection, self._on_selection),
             session.declare_subscriber(self.keys.state("resolution"), self._on_state),

@@ -37,10 +37,16 @@ on a 2-core machine, which slowed every other process on the path of an adaptati
 Replicas: every replica computes every measurement (a hot standby); only the leader of the
 ``monitor`` role publishes. Every replica answers a query on ``rra/<system>/ctx/*`` with the
 newest value of each measurement, so a restarted Adaptation Engine resumes from them.
+
+Operators (``rra inject``, `rra_agent.engines.injection`): the leader publishes an
+injection on ``inject/<kind>`` for the nodes that take them, and overrides a measurement
+with a given value for a while; both are ``injection`` events. Its status lists every
+measurement with its newest value, when it was computed and from what (``rra status``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import sys
 import time
@@ -54,11 +60,20 @@ from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Refused, data_limit, receive
+from rra_agent.bus.keys import check_topic
 from rra_agent.core.monitor import ContextMonitor
 from rra_agent.core.plan import topic_of
 from rra_agent.core.samples import MALFORMED, Refusal
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
+from rra_agent.engines.injection import (
+    InjectionError,
+    Overrides,
+    context_view,
+    find,
+    inject_text,
+    typed_value,
+)
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
@@ -72,6 +87,7 @@ REFRESH = 1.0
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
+_INJ = m.Codec[m.Injection](m.Injection)
 
 
 def import_dotted(dotted: str) -> Any:
@@ -171,6 +187,11 @@ class ContextMonitorProcess(EngineProcess):
         #: may run before this session has heard of their tokens).
         self._seed_absent: set[str] = set()
         self._events: zenoh.Publisher | None = None
+        #: Operators' overrides, the computed values they hide, the injection publishers.
+        self.declared = {meas.name: meas for meas in dep.package.measurements.measurements}
+        self.overrides = Overrides(self.refresh)
+        self._shadowed: dict[str, m.Measurement] = {}
+        self._inject_pubs: dict[str, zenoh.Publisher] = {}
 
     def source_key(self, source: str) -> str:
         ep = parse_endpoint(source)
@@ -248,6 +269,9 @@ class ContextMonitorProcess(EngineProcess):
                 )
 
     def _emit(self, msg: m.Measurement) -> None:
+        if msg.name in self.overrides.active:  # an operator's value is in effect
+            self._shadowed[msg.name] = msg
+            return
         with self.lock:
             self.latest[msg.name] = msg
         if not self.leading:
@@ -316,8 +340,9 @@ class ContextMonitorProcess(EngineProcess):
         election ends; a value computed then would otherwise reach the rules only with the
         source's next sample, up to a second later for a 1 Hz battery state), and the hosts'
         reachability (a value its predecessor published may predate what this replica has
-        seen since)."""
+        seen since). A replica that stops leading drops its operators' overrides."""
         if not leading:
+            self._end_overrides(list(self.overrides.active), "its Context Monitor stopped leading")
             return
         derived = {n for names in self.reachability.values() for n in names}
         derived |= {n for names in self.availability.values() for n in names}
@@ -392,10 +417,11 @@ class ContextMonitorProcess(EngineProcess):
             for src in self.core.sources
         ]
         entities.append(session.declare_queryable(self.keys.ctx_all, self._on_latest))
+        self._events = session.declare_publisher(
+            self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        entities.append(self._events)
         if self.reachability:
-            self._events = session.declare_publisher(
-                self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
-            )
             # With history: a token that exists already is delivered too (the seed's query
             # may run before this session has heard of it, and would call it unreachable).
             entities.append(
@@ -413,14 +439,138 @@ class ContextMonitorProcess(EngineProcess):
         return entities
 
     def status(self) -> dict[str, Any]:
-        return {"measurements": {n: msg.value for n, msg in self.latest.items()}}
+        with self.lock:
+            latest = dict(self.latest)
+        return {
+            "measurements": {n: msg.value for n, msg in latest.items()},
+            "context": context_view(self.declared.values(), latest),
+        }
 
     def tick(self, now: float) -> None:
+        if self.overrides.active:
+            self._overrides_due(now)
         self.publish_status()
 
+    # ---- operators' injections (main thread) -------------------------------------------
+    def serve(self, request: m.EngineRequest) -> m.Reply:
+        match request:
+            case m.Inject() | m.OverrideMeasurement():
+                if not self.leading:
+                    return m.Err(message=f"{self.name} does not lead", code="not_leader")
+                try:
+                    if isinstance(request, m.Inject):
+                        return self._inject(request)
+                    return self._override(request)
+                except InjectionError as e:
+                    self.refuse("injection", str(e))
+                    return m.Err(message=str(e), code=e.code)
+        return super().serve(request)
+
+    def _inject(self, req: m.Inject) -> m.Reply:
+        """Publish an injection where the nodes that take them listen; an event."""
+        try:
+            key = self.keys.inject(check_topic(req.kind))
+        except ValueError as e:
+            raise InjectionError(f"{req.kind!r} is no injection kind: {e}") from None
+        pub = self._inject_pubs.get(key)
+        if pub is None:
+            assert self.session is not None
+            pub = self._inject_pubs[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+        deadline = time.monotonic() + 0.25  # a new publisher learns its subscribers at once
+        while not _matching(pub) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        if not _matching(pub):
+            raise InjectionError(
+                f"no process of system {self.dep.system} takes injections (none subscribes "
+                f"to {key}): nothing injected",
+                code="nobody",
+            )
+        msg = msgspec.structs.replace(req, stamp=time.time())
+        pub.put(_INJ.encode(msg))
+        who = req.operator or "unknown"
+        self._injection_event(f"operator {who} injected {inject_text(req)}", who, msg)
+        return m.Ok(result={"injected": inject_text(req), "key": key, "stamp": msg.stamp})
+
+    def _override(self, req: m.OverrideMeasurement) -> m.Reply:
+        """Publish the operator's value of a measurement instead of the computed one."""
+        meas = find(self.declared, req.name, self.dep.system)
+        who = req.operator or "unknown"
+        if req.duration == 0:
+            ended = req.name in self.overrides.active
+            self._end_overrides([req.name], f"operator {who} ended it")
+            return m.Ok(result={"name": req.name, "ended": ended})
+        value = typed_value(meas, req.value)
+        o = self.overrides.set(req.name, value, who, time.time(), self.loop.clock(), req.duration)
+        with self.lock:
+            shadowed = self.latest.get(req.name)
+        if shadowed is not None and not shadowed.override:
+            self._shadowed.setdefault(req.name, shadowed)
+        self._overrides_due(self.loop.clock())
+        text = f"operator {who} overrode measurement {req.name} = {value!r} for {req.duration:g} s"
+        inj = m.Inject(kind="measurement", target=req.name, stamp=time.time(), operator=who,
+                       args={"value": value, "duration": req.duration})  # fmt: skip
+        self._injection_event(text, who, inj)
+        self.publish_status()
+        return m.Ok(result={"name": req.name, "value": value, "until": o.until, "operator": who})
+
+    def _overrides_due(self, now: float) -> None:
+        """Re-send the overrides due, end the expired ones, and wake for the next."""
+        send, ended = self.overrides.due(now)
+        for name in send:
+            msg = self.overrides.message(name, time.time(), self.fence)
+            with self.lock:
+                self.latest[name] = msg
+            if self.leading:
+                self._publish(msg)
+        if ended:
+            self._end_overrides(ended, "its time is up")
+        at = self.overrides.next_at()
+        if at is not None:
+            self.loop.due(at)
+
+    def _end_overrides(self, names: list[str], why: str) -> None:
+        """End these overrides: the newest computed value is in effect again."""
+        for name in names:
+            o = self.overrides.active.pop(name, None)
+            computed = self._shadowed.pop(name, None)
+            with self.lock:
+                if computed is not None:
+                    self.latest[name] = computed
+                elif o is not None:
+                    self.latest.pop(name, None)
+            if o is None:
+                continue
+            if computed is not None and self.leading:
+                self._publish(computed)
+            now = "computed values again" if computed is not None else "no computed value yet"
+            text = f"override of measurement {name} by {o.operator} ended ({why}): {now}"
+            inj = m.Inject(kind="measurement", target=name, stamp=time.time(),
+                           operator=o.operator, args={"ended": True})  # fmt: skip
+            self._injection_event(text, o.operator, inj)
+        self.publish_status()
+
+    def _injection_event(self, text: str, who: str, inj: m.Inject) -> None:
+        print(f"rra {self.name}: {text}", flush=True)
+        if self._events is None or not self.leading:
+            return
+        ev = m.AdaptationEvent(stamp=time.time(), kind="injection", message=text,
+                               source=self.name, operator=who, injection=inj)  # fmt: skip
+        self._events.put(_EVT.encode(ev))
+
     def stopping(self) -> None:
+        for pub in self._inject_pubs.values():
+            with contextlib.suppress(Exception):
+                pub.undeclare()
         if self.viz:
             self.viz.close()
+
+
+def _matching(pub: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches the publisher (zenoh's status object, or a bool)."""
+    status: Any = pub.matching_status
+    return bool(getattr(status, "matching", status))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -692,7 +692,7 @@ class ResolutionEngineProcess(EngineProcess):
             case m.SetParam(node=node, params=params, reset=reset):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
-                return self.set_params(node, params, reset)
+                return self.set_params(node, params, reset, request)
             case m.GetState():
                 return m.Ok(result=msgspec.to_builtins(self.engine_state()))
             case m.Retry(components=components, operator=who):
@@ -701,7 +701,13 @@ class ResolutionEngineProcess(EngineProcess):
                 return self.retry(list(components), who)
         return super().serve(request)
 
-    def set_params(self, node: str, params: dict[str, Any], reset: list[str]) -> m.Reply:
+    def set_params(
+        self,
+        node: str,
+        params: dict[str, Any],
+        reset: list[str],
+        request: m.SetParam | None = None,
+    ) -> m.Reply:
         component = next((c for c in self.dep.configured.components if c.name == node), None)
         if component is None:
             self.refuse("param", f"no component {node!r}")
@@ -728,10 +734,24 @@ class ResolutionEngineProcess(EngineProcess):
             self.overrides = before
             return m.Err(message=f"could not set {node}: {outcome.error}", code="failed")
         self._changed()
-        self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
+        self._param_event(node, values, reset, request)
         return m.Ok(
             result={"node": node, "params": values, "overrides": dict(self.overrides.get(node, {}))}
         )
+
+    def _param_event(
+        self, node: str, values: dict[str, Any], reset: list[str], request: m.SetParam | None
+    ) -> None:
+        """A ``param`` event, or an ``injection`` one for ``rra inject set_params``."""
+        if request is None or not request.injection:
+            self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
+            return
+        who = request.operator or "unknown"
+        text = f"operator {who} injected set_params {node}: " + (
+            " ".join(f"{k}={v!r}" for k, v in sorted(values.items())) or "-"
+        )
+        injection = m.Inject(kind="set_params", target=node, args=values, stamp=time.time())
+        self._event("injection", text, None, operator=who, injection=injection)
 
     def _apply_overrides(self, node: str) -> Outcome | None:
         """Push the changed desired parameters to the running (or standby) node."""
@@ -1031,6 +1051,8 @@ class ResolutionEngineProcess(EngineProcess):
         outcome: str = "",
         plan: Outcome | None = None,
         durations: dict[str, float] | None = None,
+        operator: str = "",
+        injection: m.Inject | None = None,
     ) -> None:
         if outcome in ("failed", "rolled_back") and self.actuator.superseded:
             # Not a failure of the plan: another leader acted first (both claimed at once).
@@ -1047,12 +1069,15 @@ class ResolutionEngineProcess(EngineProcess):
             level=level,
             source=self.name,
             cause=list(msg.cause) if msg else [],
+            why=list(msg.why) if msg else [],
             plan=[rec.line() for rec in plan.records] if plan else [],
             outcome=outcome,  # type: ignore[arg-type]
             durations=durations or {},
             seq=self.seq,
             fence=self.fence,
             selection=msg.seq if msg else None,
+            operator=operator,
+            injection=injection,
         )
         if self.sink is not None:
             self.sink.emit(event, publish=self.leading)

@@ -109,8 +109,10 @@ from urllib.parse import urlsplit
 
 import msgspec
 
+from rra_agent.bus.why import change_lines
+
 if TYPE_CHECKING:
-    from rra_agent.bus.messages import AdaptationEvent, NodeState
+    from rra_agent.bus.messages import AdaptationEvent, NodeState, Why
 
 ENV_VAR = "RRA_RERUN"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -431,12 +433,14 @@ class Logger:
         universe: Iterable[str] = (),
         fired: Sequence[str] = (),
         changed: bool = False,
+        why: Sequence[Why] = (),
     ) -> None:
         """The run-time selection: ``/selection/<f>`` is 1 for each selected feature and 0 for
         every other feature of ``universe`` (or seen selected before); ``/choice/<group>`` the
         selected feature of each choice of ``RerunConfig.choices``; ``/cv/<a>`` the CV values
-        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, the ``fired``
-        rules as a line of ``/rules`` (what changed: ``+Added -Removed``)."""
+        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, a
+        line of ``/rules``: what changed (``+Added -Removed``) and by which rules, with what
+        they read and what they overruled, whole (``why``; else the ``fired`` rules)."""
         selected = set(features)
         self._features.update(universe)
         self._features.update(selected)
@@ -460,7 +464,10 @@ class Logger:
             else:  # what changed: +added -removed
                 diff = [f"+{f}" for f in sorted(selected - last)]
                 text = "selection " + " ".join(diff + [f"-{f}" for f in sorted(last - selected)])
-            text += f" by {'; '.join(fired)}" if fired else ""
+            if why:
+                text += "\n" + "\n".join(change_lines(why))
+            elif fired:
+                text += f" by {'; '.join(fired)}"
             self.rec.log("/rules", rr.TextLog(text, level=level))
         self._last_selection = selected
 
@@ -472,7 +479,11 @@ class Logger:
         rr = self.rr
         head = f"{ev.kind}: {ev.message}" + (f" [{ev.outcome}]" if ev.outcome else "")
         phases = ", ".join(f"{p} {s * 1000.0:.1f} ms" for p, s in ev.durations.items())
-        lines = [head + (f" ({phases})" if phases else ""), *(f"  {step}" for step in ev.plan)]
+        lines = [head + (f" ({phases})" if phases else "")]
+        lines += [f"  {line}" for line in change_lines(ev.why)]  # the whole cause, untruncated
+        if ev.cause and not ev.why:
+            lines += [f"  cause {c.rule}: {c.action}" for c in ev.cause]
+        lines += [f"  {step}" for step in ev.plan]
         level = _LEVELS.get(ev.level, "INFO")
         if ev.kind == "adaptation" and ev.message.startswith("applied selection"):
             applied = ev.message.partition("]")[0]

@@ -202,10 +202,54 @@ def wait_for_leader(client: BusClient, timeout: float) -> None:
     )
 
 
+def engine_request(
+    client: BusClient, role: str, request: m.EngineRequest, timeout: float = 5.0
+) -> dict[str, Any]:
+    """One request to the leader of an engine ``role`` (``monitor``, ``adaptation``,
+    ``resolution``), once its token has reached this session; its ``Ok`` result. `RraError`
+    in one line when no leader answers or it refuses (its reason)."""
+    what = {"monitor": "Context Monitor", "adaptation": "Adaptation Engine"}.get(
+        role, "Run-time Resolution Engine"
+    )
+    try:
+        wait_until(
+            lambda: list(
+                client.session.liveliness().get(_leader_token(client, role), timeout=0.5)
+            ),
+            timeout,
+            f"the {what}",
+            interval=0.02,
+        )
+        reply = client.request(client.keys.engine_ctl(role), request, timeout)
+    except (TimeoutError, NoReply):
+        raise RraError(
+            f"no {what} leads system {client.keys.system!r} on this bus "
+            "(right --system and --connect?)"
+        ) from None
+    if isinstance(reply, m.Err):
+        raise RraError(reply.message)
+    return reply.result if isinstance(reply.result, dict) else {}
+
+
+def context(client: BusClient, timeout: float = 2.0) -> list[dict[str, Any]] | None:
+    """Every measurement with its newest value, as the Context Monitor leader publishes it
+    (``value``, ``stamp``, ``sources``, ``override``...; `rra_agent.engines.injection`), or
+    None when no monitor answers."""
+    try:
+        reply = client.request(client.keys.engine_ctl("monitor"), m.Status(), timeout)
+    except NoReply:
+        return None
+    if not isinstance(reply, m.Ok) or not isinstance(reply.result, dict):
+        return None
+    found = reply.result.get("context")
+    return found if isinstance(found, list) else None
+
+
 def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
-    """The engine's status, every host's nodes and every process's counters. An operator
-    with a certificate (``client.restricted``) may not call host or node control: its view
-    is the engine's (what the host agents last reported to it) and the engines' counters."""
+    """The engine's status, every host's nodes and every process's counters, and the
+    Context Monitor's measurements. An operator with a certificate (``client.restricted``)
+    may not call host or node control: its view is the engine's (what the host agents last
+    reported to it) and the engines' counters."""
     engine = engine_status(client, timeout)
     eng = engine or {}
     present = {
@@ -231,6 +275,7 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         "hosts": hosts,
         "host_agents": _host_agents(client, hosts, present, unreachable, nodes, timeout),
         "stats": process_stats(client, timeout, families=families),
+        "context": context(client, timeout) if engine is not None else None,
     }
 
 

@@ -61,9 +61,9 @@ def cause_text(w: m.Why) -> str:
         case "unavailable":
             return "as a feature is unavailable"
         case "default":
-            return "since the start (the default)"
+            return "the default since the start"
         case "resumed":
-            return "since the engine resumed"
+            return "as the system had it when the engine resumed"
     return "by the feature model"
 
 

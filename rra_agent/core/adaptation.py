@@ -810,8 +810,8 @@ class AdaptationEngine:
             raise SelectionError(
                 "cannot adopt the run-time selection", [p.message for p in problems]
             )
+        self._origin = "resumed" if chosen != self.selection or self.ticks else self._origin
         self.selection = chosen
-        self._origin = "resumed"
         self._requested = [
             float(cv[c.key]) if c.key in cv else r
             for c, r in zip(self._cvs, self._requested, strict=True)
@@ -1501,13 +1501,7 @@ class AdaptationEngine:
         why = self.provenance.get(target)
         if why is not None and why.value == value:
             return why
-        if self._origin == "resumed":
-            detail = "as the running system had it when this engine resumed"
-        elif kind == "feature":
-            detail = "the default run-time selection at the start"
-        else:
-            detail = "its initial value"
-        return Why(target=target, kind=kind, value=value, reason=self._origin, detail=detail)
+        return Why(target=target, kind=kind, value=value, reason=self._origin)
 
 
 _UNSEEN = object()

@@ -483,8 +483,8 @@ class ContextMonitorProcess(EngineProcess):
             time.sleep(0.002)
         if not _matching(pub):
             raise InjectionError(
-                f"no process of system {self.dep.system} takes injections (none subscribes "
-                f"to {key}): nothing injected",
+                f"no process of system {self.dep.system} takes injections of kind "
+                f"{req.kind}: nothing injected",
                 code="nobody",
             )
         msg = msgspec.structs.replace(req, stamp=time.time())

@@ -438,9 +438,10 @@ class Logger:
         """The run-time selection: ``/selection/<f>`` is 1 for each selected feature and 0 for
         every other feature of ``universe`` (or seen selected before); ``/choice/<group>`` the
         selected feature of each choice of ``RerunConfig.choices``; ``/cv/<a>`` the CV values
-        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, a
-        line of ``/rules``: what changed (``+Added -Removed``) and by which rules, with what
-        they read and what they overruled, whole (``why``; else the ``fired`` rules)."""
+        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, rows of
+        ``/rules``: what changed (``+Added -Removed``) and by which rules, with what they read,
+        then each rule they overruled, a row per line so that a view cuts none (``why``;
+        else one row naming the ``fired`` rules)."""
         selected = set(features)
         self._features.update(universe)
         self._features.update(selected)
@@ -464,11 +465,13 @@ class Logger:
             else:  # what changed: +added -removed
                 diff = [f"+{f}" for f in sorted(selected - last)]
                 text = "selection " + " ".join(diff + [f"-{f}" for f in sorted(last - selected)])
-            if why:
-                text += "\n" + "\n".join(change_lines(why))
-            elif fired:
-                text += f" by {'; '.join(fired)}"
-            self.rec.log("/rules", rr.TextLog(text, level=level))
+            if why:  # a row per line: a view shows one line of each row, so none is hidden
+                for line in change_lines(why):
+                    text = line if line.startswith(" ") else f"selection {line}"
+                    self.rec.log("/rules", rr.TextLog(text, level=level))
+            else:
+                text += f" by {'; '.join(fired)}" if fired else ""
+                self.rec.log("/rules", rr.TextLog(text, level=level))
         self._last_selection = selected
 
     @_safe

@@ -117,6 +117,11 @@ class EngineProcess:
         with self.lock:
             self._snapshot = status
 
+    def snapshot(self) -> dict[str, Any]:
+        """What ``Status`` answers (Zenoh thread): the last `publish_status`."""
+        with self.lock:
+            return dict(self._snapshot)
+
     def stats(self) -> m.ProcessStats:
         c = self.counters
         c.extra.update(self.extra_counters())
@@ -143,9 +148,7 @@ class EngineProcess:
         self.counters.received += 1
         match req:
             case m.Status() | m.Describe():
-                with self.lock:
-                    snapshot = dict(self._snapshot)
-                return self._reply(query, m.Ok(result=snapshot))
+                return self._reply(query, m.Ok(result=self.snapshot()))
             case m.Ping():
                 return self._reply(query, m.Ok(result={"pid": os.getpid(), "name": self.name}))
             case m.Stats():

@@ -446,6 +446,12 @@ class ContextMonitorProcess(EngineProcess):
             "context": context_view(self.declared.values(), latest),
         }
 
+    def snapshot(self) -> dict[str, Any]:
+        """The status, with the measurements as they are now (not as at the last tick)."""
+        with self.lock:
+            latest = dict(self.latest)
+        return {**super().snapshot(), "context": context_view(self.declared.values(), latest)}
+
     def tick(self, now: float) -> None:
         if self.overrides.active:
             self._overrides_due(now)

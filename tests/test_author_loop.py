@@ -131,16 +131,18 @@ def test_a_measurement_override_drives_the_rules_for_its_duration(system, bus):
     assert ended and "ended" in events_of(sys_, "injection")[1].message
 
 
-def test_bad_injections_are_refused_in_one_line_and_change_nothing(system, bus):
+def test_bad_injections_are_refused_in_one_line_and_change_nothing(system, bus, request):
     sys_ = system()
     sys_.connect = bus.connect[0]
+    if not request.config.getoption("--hostile"):  # it subscribes to every key, inject/** too
+        text = "no process of system relay_system takes injections"
+        one_line_error(rra(sys_, "inject", "break_motor", "2"), text)
     for args, text in (
         (("measurement", "Lvl=7"), "no measurement 'Lvl' (did you mean Level?)"),
         (("measurement", "Level=high"), "Level is a float measurement: 'high' is not a number"),
         (("measurement", "Level=1e9"), "Level may not be 1000000000.0, outside [-1000, 1000]"),
         (("measurement", "Level=nan"), "Level may not be nan"),
         (("measurement", "Level=7", "--for", "soon"), "expected a duration"),
-        (("break_motor", "2"), "no process of system relay_system takes injections"),
         (("set_params", "source", "value=high"), "source"),
         (("set_params", "nobody", "value=1"), "no component 'nobody'"),
         (("relay", "x"), "expected key=value arguments"),
@@ -165,20 +167,22 @@ def test_set_params_is_an_injection_event(system, bus):
 
 def test_a_forged_override_is_refused_and_counted(system, bus):
     """A client that is not the Context Monitor leader puts an 'override' of Level on the
-    bus: without the leader's fence the Adaptation Engine refuses it."""
+    bus: without the leader's fence (none, or one naming a real replica with another epoch or
+    instance) the Adaptation Engine refuses it, and the rules never see Level 9."""
     sys_ = system()
     sys_.connect = bus.connect[0]
     session = sys_.client.session
-    forged = [
-        m.Measurement(name="Level", value=9.0, stamp=time.time(), override="mallory"),
-        m.Measurement(
-            name="Level",
-            value=9.0,
-            stamp=time.time(),
-            override="mallory",
-            fence=m.Fence(epoch=999, leader="monitor-a", instance="x"),
-        ),
+    leader = sys_.leader(sys_.gather(), "monitor")
+    fences = [
+        None,
+        m.Fence(epoch=999, leader=leader),
+        m.Fence(epoch=1, leader=leader, instance="x"),
     ]
+    seen: list[m.Selection] = []
+    sub = session.declare_subscriber(
+        K.selection, lambda s: seen.append(x) if isinstance(
+            x := SEL.decode(s.payload.to_bytes()), m.Selection) else None
+    )  # fmt: skip
 
     def rejected() -> int:
         stats = gather(sys_.client, timeout=1.0)["stats"]
@@ -188,13 +192,17 @@ def test_a_forged_override_is_refused_and_counted(system, bus):
     pub = session.declare_publisher(K.ctx("Level"))
     try:
         deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline:  # for 3 s, ten a second: never a selection
-            for msg in forged:
+        while time.monotonic() < deadline:  # for 3 s, ten a second
+            for fence in fences:
+                msg = m.Measurement(name="Level", value=9.0, stamp=time.time(),
+                                    override="mallory", fence=fence)  # fmt: skip
                 pub.put(CTX.encode(msg))
             time.sleep(0.1)
-        wait_until(lambda: rejected() >= before + 2, 10, "the refusals counted")
+        wait_until(lambda: rejected() >= before + 3 * 20, 10, "the refusals counted")
     finally:
         pub.undeclare()
+        sub.undeclare()
+    assert seen and not [x for x in seen if "Filtered" in x.features or x.cv.get("Gain") == 9.0]
     st = sys_.gather()
     assert "direct" in st["engine"]["running"] and st["engine"]["cv"]["Gain"] == 1.0
 

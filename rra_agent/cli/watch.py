@@ -74,7 +74,7 @@ class Watcher:
         own answer, which needs no fence)."""
         if msg.name not in self.names:
             return
-        if msg.override and not trusted and not self.monitor.is_leader(msg.fence):
+        if msg.override and not trusted and not self.monitor.holds(msg.fence):
             return  # a forged override: the rules refuse it too
         with self.lock:
             key = (msg.value, msg.override)

@@ -139,7 +139,7 @@ class AdaptationEngineProcess(EngineProcess):
 
     def _from_monitor(self, msg: m.Measurement) -> bool:
         """An override comes only from the live Context Monitor leader (its fence)."""
-        if self.monitor is not None and self.monitor.is_leader(msg.fence):
+        if self.monitor is not None and self.monitor.holds(msg.fence):
             return True
         who = msg.fence.leader if msg.fence else "nobody"
         self.refuse("forged override", f"override of {msg.name} by {msg.override} from {who}")

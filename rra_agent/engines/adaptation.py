@@ -1,9 +1,9 @@
 """The Adaptation Engine process (paper Sec. III-D).
 
 It listens to every Context Dependent Measurement on ``rra/<system>/ctx/*``, evaluates the
-Adaptation Model with the pure engine (`rra_agent.core.adaptation.Engine`) on each new measurement
-(rules with ``period 0``) and periodically (rules with a period, every ``tick`` seconds), and
-publishes the run-time feature selection and the Continuous Variability values on
+Adaptation Model with the pure engine (`rra_agent.core.adaptation.AdaptationEngine`) on each new
+measurement (rules with ``period 0``) and periodically (rules with a period, every ``tick``
+seconds), and publishes the run-time feature selection and the Continuous Variability values on
 ``rra/<system>/selection``: at once when they change, and as a heartbeat every
 ``heartbeat`` seconds. Each selection names its cause (the rules that fired and the stamps of
 the measurements they read) and carries the fence of the leader that decided it.
@@ -16,7 +16,7 @@ a conflict starts and once when it ends; every `Selection` carries the conflicts
 Operators force run-time features on or off (``rra select``, `ForceFeatures` on
 ``engine/adaptation/ctl``): recorded as an ``override`` event, respected by the rules until
 released, and carried in every `Selection` (``forced``), which the Run-time Resolution
-AdaptationEngine keeps in its state: a restarted Adaptation Engine resumes with them.
+Engine keeps in its state: a restarted Adaptation Engine resumes with them.
 
 It never publishes a default selection over a running system: before it evaluates anything
 it resumes from the system's current selection and CV values, asked from the Run-time

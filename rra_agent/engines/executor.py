@@ -1,6 +1,6 @@
 """Execute a reconfiguration `Plan` on the running system: what can be applied is applied.
 
-The Run-time Resolution Engine computes a `Plan` (`rra_agent.core.resolution.diff`); this
+The Run-time Resolution Engine computes a `Plan` (`rra_agent.core.plan.diff`); this
 module carries it out through an `Actuator` (host agents and node control endpoints on the
 bus, or a fake in unit tests).
 

@@ -19,8 +19,9 @@ from conftest import RELAY_KEYS as K
 from conftest import ROOT, listening, package_copy, run_rra
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import connect_system, gather, wait_until
+from rra_agent.bus.client import connect_system, engine_request, gather, wait_until
 from rra_agent.cli.common import WIDTH
+from rra_agent.errors import RraError
 
 SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 CTX = m.Codec[m.CtxMessage](m.CtxMessage)
@@ -44,6 +45,24 @@ def one_line_error(out: subprocess.CompletedProcess[str], text: str) -> None:
 def fits(text: str) -> None:
     too_wide = [line for line in text.splitlines() if len(line) > WIDTH]
     assert not too_wide, too_wide
+
+
+def decoded(payload: bytes) -> m.Selection | None:
+    """A selection, or None for anything else (--hostile puts garbage on the key too)."""
+    try:
+        msg = SEL.decode(payload)
+    except msgspec.MsgspecError:
+        return None
+    return msg if isinstance(msg, m.Selection) else None
+
+
+def explains(client) -> bool:
+    """The Adaptation Engine leader answers ``rra why`` (it has resumed)."""
+    try:
+        engine_request(client, "adaptation", m.Explain(), 2.0)
+    except RraError:
+        return False
+    return True
 
 
 def events_of(sys_, kind: str) -> list[m.AdaptationEvent]:
@@ -178,11 +197,11 @@ def test_a_forged_override_is_refused_and_counted(system, bus):
         m.Fence(epoch=999, leader=leader),
         m.Fence(epoch=1, leader=leader, instance="x"),
     ]
-    seen: list[m.Selection] = []
-    sub = session.declare_subscriber(
-        K.selection, lambda s: seen.append(x) if isinstance(
-            x := SEL.decode(s.payload.to_bytes()), m.Selection) else None
-    )  # fmt: skip
+    deciding = sys_.leader(sys_.gather(), "adaptation")
+    seen: list[m.Selection] = []  # the Adaptation Engine leader's (--hostile forges others)
+    sub = session.declare_subscriber(K.selection, lambda s: seen.extend(
+        x for x in [decoded(s.payload.to_bytes())] if x and x.fence and x.fence.leader == deciding
+    ))  # fmt: skip
 
     def rejected() -> int:
         stats = gather(sys_.client, timeout=1.0)["stats"]
@@ -214,10 +233,9 @@ def test_the_selection_names_the_rule_that_changed_it_and_what_it_overruled(syst
     sys_ = system(pkg)
     sys_.connect = bus.connect[0]
     seen: list[m.Selection] = []
-    sub = sys_.client.session.declare_subscriber(
-        K.selection, lambda s: seen.append(msg) if isinstance(
-            msg := SEL.decode(s.payload.to_bytes()), m.Selection) and msg.why else None
-    )  # fmt: skip
+    sub = sys_.client.session.declare_subscriber(K.selection, lambda s: seen.extend(
+        x for x in [decoded(s.payload.to_bytes())] if x and x.why
+    ))  # fmt: skip
     try:
         sys_.set_level(4.0)  # PathRule wants Direct; Safety, written later, selects Filtered
         sys_.wait(lambda s: "filtered" in s["engine"]["running"], "Filtered by Safety")
@@ -288,6 +306,7 @@ def test_break_a_motor_from_the_terminal_and_ask_why(procs, bus, tmp_path):
             return eng.get("effective", [])
 
         wait_until(lambda: "Standard" in selection(), 60, "the deployment", interval=0.1)
+        wait_until(lambda: explains(client), 60, "the Adaptation Engine leader", interval=0.1)
         out = run_rra("status", "--reachable", *connect)
         assert "2 run-time configurations" in out.stdout and "*Standard | Proploss" in out.stdout
         out = run_rra("inject", "break_motor", "2", *connect)

@@ -220,11 +220,17 @@ def engine_request(
             f"the {what}",
             interval=0.02,
         )
-        reply = client.request(client.keys.engine_ctl(role), request, timeout)
-    except (TimeoutError, NoReply):
+    except TimeoutError:
         raise RraError(
             f"no {what} leads system {client.keys.system!r} on this bus "
             "(right --system and --connect?)"
+        ) from None
+    try:
+        reply = client.request(client.keys.engine_ctl(role), request, timeout)
+    except NoReply:
+        raise RraError(
+            f"the {what} leader of system {client.keys.system!r} did not answer within "
+            f"{timeout:g} s (a busy machine? try again)"
         ) from None
     if isinstance(reply, m.Err):
         raise RraError(reply.message)

@@ -98,6 +98,7 @@ import math
 import os
 import socket
 import sys
+import textwrap
 import threading
 import time
 import uuid
@@ -113,6 +114,10 @@ from rra_agent.bus.why import change_lines
 
 if TYPE_CHECKING:
     from rra_agent.bus.messages import AdaptationEvent, NodeState, Why
+
+#: Characters of a ``/rules`` row: what the events view's body column shows of a row at
+#: 1600 px in the designed views (rendered with tools/render_rrd.py); longer lines go on.
+RULES_WIDTH = 72
 
 ENV_VAR = "RRA_RERUN"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -276,6 +281,18 @@ class _Rows:
         self.wall: list[float] = []
         self.values: list[Any] = []
 
+
+
+def rule_rows(why: Sequence[Why], width: int = RULES_WIDTH) -> list[str]:
+    """The rows of ``/rules`` for one change of the selection: each line of
+    `rra_agent.bus.why.change_lines` cut at words into rows of at most ``width`` characters
+    (a row goes on, indented, in the next), so that the events view cuts none of the cause."""
+    rows: list[str] = []
+    for line in change_lines(why):
+        text = line if line.startswith(" ") else f"selection {line}"
+        indent = " " * (len(text) - len(text.lstrip()) + 4)
+        rows += textwrap.wrap(text, width, subsequent_indent=indent, break_on_hyphens=False)
+    return rows
 
 class Logger:
     """One process' handle on the shared recording. Thread-safe; every method is a no-op after
@@ -466,9 +483,8 @@ class Logger:
                 diff = [f"+{f}" for f in sorted(selected - last)]
                 text = "selection " + " ".join(diff + [f"-{f}" for f in sorted(last - selected)])
             if why:  # a row per line: a view shows one line of each row, so none is hidden
-                for line in change_lines(why):
-                    text = line if line.startswith(" ") else f"selection {line}"
-                    self.rec.log("/rules", rr.TextLog(text, level=level))
+                for row in rule_rows(why):
+                    self.rec.log("/rules", rr.TextLog(row, level=level))
             else:
                 text += f" by {'; '.join(fired)}" if fired else ""
                 self.rec.log("/rules", rr.TextLog(text, level=level))

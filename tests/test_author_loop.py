@@ -141,6 +141,9 @@ def test_a_measurement_override_drives_the_rules_for_its_duration(system, bus):
     assert level["value"] == 7.0 and "@" in level["override"]
     status = rra(sys_, "status").stdout
     assert "7 OVERRIDE" in status and "override by " in status, status
+    why = rra(sys_, "why", "Filtered").stdout  # the value the rule read was the operator's
+    assert "by rule PathRule: activate_feature(Filtered)" in why, why
+    assert "reading Level = 7.0 (override by " in why, why
     (event,) = events_of(sys_, "injection")
     assert event.injection is not None and event.injection.kind == "measurement"
     assert event.injection.target == "Level" and event.operator and "@" in event.operator
@@ -148,6 +151,9 @@ def test_a_measurement_override_drives_the_rules_for_its_duration(system, bus):
     sys_.wait(lambda s: "direct" in s["engine"]["running"], "Direct again after 3 s", 20)
     ended = wait_until(lambda: len(events_of(sys_, "injection")) == 2, 10, "the end event")
     assert ended and "ended" in events_of(sys_, "injection")[1].message
+    log = " ".join(run_rra("events", "--log", str(sys_.run_dir / "events.jsonl")).stdout.split())
+    assert "+Filtered by PathRule: activate_feature(Filtered) reading Level=7 (override " in log
+    assert "by PathRule: activate_feature(Direct) reading Level=1 (0" in log, log  # computed
 
 
 def test_bad_injections_are_refused_in_one_line_and_change_nothing(system, bus, request):

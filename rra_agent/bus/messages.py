@@ -96,6 +96,8 @@ class FiredRule(Msg, tag="fired"):
     reads: dict[str, float] = {}
     #: ... and the values it saw.
     values: dict[str, float | int | bool | str] = {}
+    #: Of those, the values an operator set (``rra inject measurement``): name -> who.
+    overrides: dict[str, str] = {}
 
 
 class Overruled(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):

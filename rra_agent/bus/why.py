@@ -32,9 +32,11 @@ def value_text(value: object) -> str:
 
 
 def reads_text(f: m.FiredRule) -> str:
-    """``Zone="near" (12:00:01.234), BattLev=30 (12:00:00.998)``: what a rule read."""
+    """``Zone="near" (12:00:01.234), BattLev=10 (override 12:00:00.998)``: what a rule
+    read (an operator's override as such)."""
     return ", ".join(
-        f"{n}={value_text(f.values[n]) if n in f.values else '?'} ({clock(stamp)})"
+        f"{n}={value_text(f.values[n]) if n in f.values else '?'} "
+        f"({'override ' if n in f.overrides else ''}{clock(stamp)})"
         for n, stamp in f.reads.items()
     )
 

@@ -70,7 +70,8 @@ def detail_lines(w: m.Why, wide: bool = False) -> list[str]:
         out += wrap(f"  {prefix} {f.rule}: {f.action}{where}", "  ", wide)
         for name, stamp in f.reads.items():
             value = repr(f.values[name]) if name in f.values else "?"
-            out.append(f"    reading {name} = {value} (computed {clock(stamp)})")
+            origin = f"override by {f.overrides[name]}" if name in f.overrides else "computed"
+            out.append(f"    reading {name} = {value} ({origin} {clock(stamp)})")
     if not w.by:
         out += wrap(f"  {cause_text(w)}", "  ", wide)
     if w.detail:

@@ -64,6 +64,9 @@ from rra_agent.errors import SelectionError
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
+#: Overrides remembered to mark the values read that were an operator's (about 25 s of one
+#: override re-sent ten times a second).
+OVERRIDES_KEPT = 256
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
@@ -116,6 +119,9 @@ class AdaptationEngineProcess(EngineProcess):
         #: Rejections as unavailable already reported: (rule, feature).
         self._unavailable_told: set[tuple[str, str]] = set()
         self._reach: tuple[Any, dict[str, Any]] | None = None
+        #: The operators' overrides received: (measurement, stamp) -> who (the newest
+        #: `OVERRIDES_KEPT`), so that an explanation says which value read was one.
+        self.overrides: dict[tuple[str, float], str] = {}
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -128,6 +134,8 @@ class AdaptationEngineProcess(EngineProcess):
             return
         if msg.override and not self._from_monitor(msg):
             return
+        if msg.override:
+            self._note_override(msg)
         with self.lock:
             self.counters.received += 1
             self.measurements[msg.name] = (msg.value, msg.stamp)
@@ -136,6 +144,12 @@ class AdaptationEngineProcess(EngineProcess):
         if schedule and not self.loop.run_or_post(self._evaluate_posted):
             with self.lock:
                 self._scheduled = False
+
+    def _note_override(self, msg: m.Measurement) -> None:
+        with self.lock:
+            self.overrides[(msg.name, msg.stamp)] = msg.override
+            while len(self.overrides) > OVERRIDES_KEPT:
+                del self.overrides[next(iter(self.overrides))]
 
     def _from_monitor(self, msg: m.Measurement) -> bool:
         """An override comes only from the live Context Monitor leader (its fence)."""
@@ -337,7 +351,7 @@ class AdaptationEngineProcess(EngineProcess):
 
     def publish(self, result: TickResult, values: dict, now: float) -> None:
         self.seq += 1
-        why = [wire_why(w) for w in result.why]
+        why = [wire_why(w, self.overrides) for w in result.why]
         cause = causes(why)
         self._send(
             m.Selection(
@@ -389,7 +403,7 @@ class AdaptationEngineProcess(EngineProcess):
         except KeyError as e:
             return m.Err(message=str(e.args[0]), code="unknown")
         result: dict[str, Any] = {
-            "why": [msgspec.to_builtins(wire_why(w)) for w in why],
+            "why": [msgspec.to_builtins(wire_why(w, self.overrides)) for w in why],
             "selection": sorted(self.engine.selection),
             "forced": _choices(self.engine.forced),
         }

@@ -9,7 +9,8 @@ and back for a replica that follows its leader.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
+from types import MappingProxyType
 from typing import Any
 
 from rra_agent.bus import messages as m
@@ -19,6 +20,7 @@ from rra_agent.models.features import Span
 
 #: Configurations listed in an answer about what is reachable (the count is always given).
 LISTED = 32
+_NONE: Mapping[tuple[str, float], str] = MappingProxyType({})
 
 
 def _where(span: Span | None) -> str:
@@ -38,8 +40,13 @@ def _name(rule: str, ruleset: str | None) -> str:
     return rule if ruleset is None else f"{ruleset}.{rule}"
 
 
-def wire_fired(f: FiredRule, reads: dict[str, tuple[Any, float]]) -> m.FiredRule:
-    """A fired action as the wire names it, with the stamps and values it read."""
+def wire_fired(
+    f: FiredRule,
+    reads: dict[str, tuple[Any, float]],
+    overrides: Mapping[tuple[str, float], str] = _NONE,
+) -> m.FiredRule:
+    """A fired action as the wire names it, with the stamps and values it read, and which of
+    them an operator set (``overrides``: (measurement, stamp) -> who)."""
     seen = {n: reads[n] for n in f.reads if n in reads}
     return m.FiredRule(
         rule=_name(f.rule, f.ruleset),
@@ -47,17 +54,18 @@ def wire_fired(f: FiredRule, reads: dict[str, tuple[Any, float]]) -> m.FiredRule
         where=_where(f.span),
         reads={n: float(s) for n, (_, s) in seen.items()},
         values={n: v for n, (v, _) in seen.items() if isinstance(v, float | int | bool | str)},
+        overrides={n: who for n, (_, s) in seen.items() if (who := overrides.get((n, s)))},
     )
 
 
-def wire_why(w: Why) -> m.Why:
+def wire_why(w: Why, overrides: Mapping[tuple[str, float], str] = _NONE) -> m.Why:
     return m.Why(
         target=w.target,
         kind=w.kind,
         value=w.value,
         since=w.since,
         reason=w.reason,
-        by=[wire_fired(f, w.reads) for f in w.by],
+        by=[wire_fired(f, w.reads, overrides) for f in w.by],
         detail=w.detail,
         overruled=[
             m.Overruled(

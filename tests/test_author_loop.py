@@ -99,13 +99,13 @@ def test_status_shows_every_measurement_with_its_value_age_and_source(system, bu
     assert context["SinkUp"]["derived"] and context["SinkUp"]["value"] is True
 
 
-def test_watch_prints_a_line_per_change_until_the_system_stops(system, bus, procs):
-    sys_ = system()
+def test_watch_prints_a_line_per_change_until_the_system_stops(system, bus, procs, tmp_path):
+    sys_ = system(with_derived(tmp_path))
     sys_.connect = bus.connect[0]
     out = rra(sys_, "watch", "Levle")
     one_line_error(out, "no measurement 'Levle' (did you mean Level?)")
     watch = subprocess.Popen(
-        [sys.executable, "-m", "rra_agent", "watch", "Level", "--connect", sys_.connect],
+        [sys.executable, "-m", "rra_agent", "watch", "--connect", sys_.connect],  # all
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
     )  # fmt: skip
     lines: list[str] = []
@@ -113,6 +113,7 @@ def test_watch_prints_a_line_per_change_until_the_system_stops(system, bus, proc
     reader.start()
     try:
         wait_until(lambda: any(" Level = 1 " in x for x in lines), 20, "the current value")
+        wait_until(lambda: any(" SinkUp = true" in x for x in lines), 20, "a derived one")
         for level in (2.5, 3.5):
             sys_.set_level(level)
             text = f" Level = {level:g} "

@@ -27,6 +27,7 @@ from pathlib import Path
 import msgspec
 
 from rra_agent.bus import messages as m
+from rra_agent.cli.common import add_wide_argument
 from rra_agent.errors import RraError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -164,6 +165,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-adaptation", action="store_true", help="the control case: no RRA")
     p.add_argument("--run-dir", help="logs of the run (default: .rra/demo-<time>)")
+    add_wide_argument(p, "the report's tables")
 
 
 def prepare_case(strategy: str, adaptation: bool, out: Path):
@@ -220,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
     print("\nWhat happened after the fault:")
     print(render_report(report))
     print("\nThe scenario's expectations:")
-    print(render_rows([result]))
+    print(render_rows([result], wide=args.wide))
     (run_dir / "report.json").write_bytes(msgspec.json.encode(report))
     if out.exists():
         print(f"\nRecording: {out} (verified). Open it with:\n  rra view {out}")

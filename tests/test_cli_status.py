@@ -104,6 +104,53 @@ def test_a_busy_machine_still_finds_the_system(system, bus, hog, capsys) -> None
         assert "relay_system" in out
 
 
+def watch(ep: str, stdout: int, tmp_path: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "rra_agent", "status", "--watch", "0.2", "--connect", ep],
+        stdout=stdout, stderr=subprocess.STDOUT, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+
+
+def test_watch_writes_no_escape_codes_into_a_pipe(system, bus, tmp_path: Path) -> None:
+    """Into a pipe: the refreshes one after the other, each after a time line; on a terminal
+    (a pseudo-terminal here): the screen cleared before each."""
+    import pty
+    import select
+
+    system()
+    ep = bus.connect[0]
+    out = tmp_path / "watch.out"
+    with out.open("wb") as f:
+        proc = watch(ep, f.fileno(), tmp_path)
+    try:
+        wait_until(lambda: out.read_bytes().count(b"\nsystem ") >= 2, 60, "two refreshes")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+    text = out.read_bytes()
+    assert b"\x1b" not in text, text[:200]
+    assert text.startswith(b"system      relay_system")
+    lines = text.decode().splitlines()
+    assert any(line.startswith("-- ") and line[3:].count(":") == 2 for line in lines)
+    master, slave = pty.openpty()
+    proc = watch(ep, slave, tmp_path)
+    os.close(slave)
+    seen = b""
+    try:
+        def cleared() -> bool:
+            nonlocal seen
+            if select.select([master], [], [], 0.2)[0]:
+                seen += os.read(master, 65536)
+            return seen.count(b"\x1b[2J\x1b[H") >= 2
+
+        wait_until(cleared, 60, "two redraws on the terminal")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+        os.close(master)
+
+
 # ---- rra events -----------------------------------------------------------------------------
 def test_events_shows_swaps_not_cv_updates(system, bus, tmp_path: Path) -> None:
     s = system()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -192,6 +193,16 @@ def test_events_shows_swaps_not_cv_updates(system, bus, tmp_path: Path) -> None:
     swap = next(e for e in applied if any(p.startswith("start filtered") for p in e.plan))
     d = swap.durations
     assert d["total"] == pytest.approx(d["decide"] + d["deliver"] + d["plan"] + d["execute"])
+    # The number an event says is the number of plan lines it shows (was "3 step(s)" above
+    # five lines: the plan's steps, not its actions). The deployment says it too.
+    counted = [e for e in s.events() if isinstance(e, m.AdaptationEvent) and e.plan]
+    assert {e.kind for e in counted} >= {"deploy", "adaptation"}
+    for ev in counted:
+        said = re.search(r"(\d+) actions?\b", ev.message)
+        assert said is not None, ev.message
+        shown = format_event(ev).splitlines()
+        actions = [line for line in shown if line.startswith("    - ") and "- note:" not in line]
+        assert int(said[1]) == len(actions), (ev.message, shown)
 
 
 def run_rra_out(*args: str) -> str:
@@ -209,7 +220,7 @@ def applied(stamp: float, features: list[str], *plan: str) -> m.AdaptationEvent:
     return m.AdaptationEvent(
         stamp=stamp,
         kind="adaptation",
-        message=f"applied selection {sorted(features)}, {len(plan)} step(s)",
+        message=f"applied selection {sorted(features)}, {len(plan)} actions",
         outcome="ok",
         plan=list(plan),
     )

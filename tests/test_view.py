@@ -194,7 +194,7 @@ def test_the_events_view_shows_structural_changes_and_hides_cv_updates(tmp_path)
     log.selection(["B"], {"V": 2.0}, t + 3, universe=["A", "B"], fired=["r3"], changed=True)
     for i, sel in enumerate(("['A']", "['A']", "['B']")):
         log.event(m.AdaptationEvent(stamp=t + 1 + i, kind="adaptation",
-                                    message=f"applied selection {sel}, 1 step(s)",
+                                    message=f"applied selection {sel}, 1 action",
                                     durations={"plan": 0.002}))  # fmt: skip
     log.close()
     assert log.path is not None

@@ -542,13 +542,16 @@ class ResolutionEngineProcess(EngineProcess):
         decided = f"selection {sorted(self.selection)}"
         if outcome.ok:
             text = f"applied {decided}" + (
-                f", {outcome.steps} step(s)" if plan.steps else " (no change to the system)"
+                f", {_actions(outcome)}" if plan.steps else " (no change to the system)"
             )
             self._event("adaptation", text, msg, outcome="ok", plan=outcome, durations=durations)
             return
         failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
         if outcome.applied:
-            head = f"adaptation partly applied ({outcome.applied} of {outcome.steps} steps)"
+            head = (
+                f"adaptation partly applied ({outcome.applied} of {outcome.steps} plan steps; "
+                f"{_actions(outcome)})"
+            )
             kind = "partial"
         elif outcome.rolled_back:
             head, kind = "adaptation failed, rolled back", "rolled_back"
@@ -836,7 +839,7 @@ class ResolutionEngineProcess(EngineProcess):
         failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
         self._event(
             kind,
-            f"{what}, {len(plan.steps) + len(missing)} step(s) ({reason})"
+            f"{what}, {_actions(outcome)} ({reason})"
             if outcome.ok
             else f"{kind} partly applied: {what}; not applied: {failed}",
             None,
@@ -1199,6 +1202,13 @@ def _without(model: SystemModel, names: Collection[str]) -> SystemModel:
 def _impl(model: SystemModel, name: str) -> Any:
     c = model.component(name)
     return None if c is None else c.implementation
+
+
+def _actions(outcome: Outcome) -> str:
+    """``5 actions``: how many actions an event's plan lists (its lines but the notes), the
+    number it says being the number of lines it shows (``rra events``)."""
+    n = sum(1 for rec in outcome.records if rec.action != "note")
+    return f"{n} action" + ("" if n == 1 else "s")
 
 
 def _rerun_config() -> dict[str, Any]:

@@ -16,6 +16,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import msgspec
@@ -94,6 +95,31 @@ def test_param_without_system(system, bus, capsys) -> None:
     rc, out, err = run(["param", "source", "--connect", bus.connect[0]], capsys)
     assert rc == 0, err
     assert "value = " in out
+
+
+def test_param_of_a_node_that_is_not_running(system, bus, capsys) -> None:
+    """One rule both ways: a node not running now (filtered: Direct is selected) takes a
+    value as the one it will start with, and its read shows what it will start with; both
+    say it is not running; it starts with it. An unknown node is refused at once."""
+    s = system()
+    ep = bus.connect[0]
+    started = time.monotonic()
+    rc, out, err = run(["param", "nosuch", "--connect", ep], capsys)
+    elapsed = time.monotonic() - started
+    assert (rc, out) == (1, "")
+    assert err == ("rra param: no node 'nosuch' in system 'relay_system' (its nodes: direct, "
+                   "filtered, sink, source)\n")  # fmt: skip
+    assert elapsed < 2.0, f"{elapsed:.2f} s"  # generous: the engine knows its model (was 2.2 s)
+    header = "filtered is not running; it will start with:\n"
+    assert run(["param", "filtered", "--connect", ep], capsys)[1:] == (
+        header + "offset = 100.0\n", "")
+    assert run(["param", "filtered", "offset=3", "--connect", ep], capsys)[1] == (
+        header + "offset = 3.0\n")
+    assert run(["param", "filtered", "--connect", ep], capsys)[1] == header + "offset = 3.0\n"
+    s.set_level(9.0)  # Filtered: filtered starts, with the operator's value
+    s.wait(lambda st: s.node(st, "filtered")["state"] == "RUNNING", "filtered running")
+    rc, out, _ = run(["param", "filtered", "--connect", ep], capsys)
+    assert (rc, out) == (0, "offset = 3.0\n")
 
 
 def test_a_busy_machine_still_finds_the_system(system, bus, hog, capsys) -> None:

@@ -346,15 +346,20 @@ def set_params(
 
 def engine_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[str, Any]:
     """A node's parameters in the Run-time Configured System Model (the engine's state)."""
+    return node_params(client, node, timeout)["params"]
+
+
+def node_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[str, Any]:
+    """``GetParams`` of the Run-time Resolution Engine leader: ``{"node", "state", "params",
+    "overrides"}`` (``state``: ``running``, ``standby`` or ``stopped``, then ``params`` are
+    the values it will start with). `RraError` in one line for a name that is no node of the
+    system (at once: the engine knows its model) or when no engine leads."""
     try:
         wait_for_leader(client, timeout)
-        reply = client.request(client.keys.engine_ctl("resolution"), m.GetState(), timeout)
+        key = client.keys.engine_ctl("resolution")
+        reply = client.request(key, m.GetParams(node=node), timeout)
     except (TimeoutError, NoReply):
         raise RraError(f"no Run-time Resolution Engine leads {client.keys.system!r}") from None
-    if not isinstance(reply, m.Ok):
-        raise RraError(f"{node}: {reply.message}")  # type: ignore[union-attr]
-    state = msgspec.convert(reply.result, m.EngineState)
-    spec = next((s for s in (*state.running, *state.standby) if s.name == node), None)
-    if spec is None:
-        raise RraError(f"no running node {node!r} in system {client.keys.system!r}")
-    return dict(spec.params)
+    if isinstance(reply, m.Err):
+        raise RraError(reply.message if reply.code == "unknown" else f"{node}: {reply.message}")
+    return reply.result  # type: ignore[no-any-return]

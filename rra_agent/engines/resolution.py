@@ -698,19 +698,59 @@ class ResolutionEngineProcess(EngineProcess):
                 return self.set_params(node, params, reset)
             case m.GetState():
                 return m.Ok(result=msgspec.to_builtins(self.engine_state()))
+            case m.GetParams(node=node):
+                if not self.leading:
+                    return m.Err(message=f"{self.name} does not lead", code="not_leader")
+                return self.node_params(node)
             case m.Retry(components=components, operator=who):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
                 return self.retry(list(components), who)
         return super().serve(request)
 
+    def _no_component(self, node: str) -> m.Err:
+        self.refuse("param", f"no component {node!r}")
+        names = ", ".join(sorted(c.name for c in self.dep.configured.components))
+        return m.Err(
+            message=f"no node {node!r} in system {self.dep.system!r} (its nodes: {names})",
+            code="unknown",
+        )
+
+    def node_state(self, node: str) -> str:
+        """``running``, ``standby`` (started, inactive) or ``stopped``."""
+        if node in self.executor.standby:
+            return "standby"
+        return "running" if node in self.executor.running else "stopped"
+
+    def node_params(self, node: str) -> m.Reply:
+        """``GetParams``: the values a node runs with, or, not running, will start with (what
+        a `SetParam` to it changes, either way)."""
+        if self.dep.configured.component(node) is None:
+            return self._no_component(node)
+        spec = self.executor.running.get(node) or self.executor.standby.get(node)
+        if spec is not None:
+            params = dict(spec.params)
+        else:
+            try:  # in the model decided now (its CV values), else as configured
+                c = self.target(self.selection, self.cv).component(node)
+            except RraError:
+                c = None
+            if c is None:
+                c = r.with_parameters(self.dep.configured, self.overrides).component(node)
+            params = {k: p.value for k, p in c.parameters.items()} if c is not None else {}
+        return m.Ok(
+            result={
+                "node": node,
+                "state": self.node_state(node),
+                "params": params,
+                "overrides": dict(self.overrides.get(node, {})),
+            }
+        )
+
     def set_params(self, node: str, params: dict[str, Any], reset: list[str]) -> m.Reply:
         component = next((c for c in self.dep.configured.components if c.name == node), None)
         if component is None:
-            self.refuse("param", f"no component {node!r}")
-            return m.Err(
-                message=f"no component {node!r} in system {self.dep.system}", code="unknown"
-            )
+            return self._no_component(node)
         try:
             values = r.check_parameters(self.dep.configured, node, params)
             unknown = [n for n in reset if n not in component.parameters]
@@ -733,7 +773,13 @@ class ResolutionEngineProcess(EngineProcess):
         self._changed()
         self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
         return m.Ok(
-            result={"node": node, "params": values, "overrides": dict(self.overrides.get(node, {}))}
+            result={
+                "node": node,
+                "params": values,
+                "overrides": dict(self.overrides.get(node, {})),
+                # not running: it will start with them (the read, GetParams, says the same)
+                "state": self.node_state(node),
+            }
         )
 
     def _apply_overrides(self, node: str) -> Outcome | None:

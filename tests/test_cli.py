@@ -241,7 +241,7 @@ def test_a_rule_error_is_one_line_in_check_as_in_validate(
     rules = pkg / "adaptation.rra"
     rules.write_text(rules.read_text() + "\nrule Bad: set_attribute(Nope) with_value(1)\n")
     _, validated, _ = run(["validate", str(pkg)], capsys)
-    rc, out, err = run(["check", str(pkg)], capsys)
+    rc, _, err = run(["check", str(pkg)], capsys)
     assert rc == 1 and err == validated and len(err.splitlines()) == 1, err
     assert err.startswith(f"{rules}:"), err
 

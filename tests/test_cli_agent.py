@@ -15,10 +15,10 @@ from test_host_agent import PACKAGE, SYSTEM, relay_spec
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient
 from rra_agent.bus.config import BusConfig, free_port
+from rra_agent.bus.keys import Keys
 from rra_agent.bus.session import open_session
 from rra_agent.host.links import DEADLINE
 from rra_agent.text import WIDTH
-from rra_agent.bus.keys import Keys
 
 #: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
 pytestmark = pytest.mark.system

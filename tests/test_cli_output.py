@@ -60,8 +60,10 @@ def test_the_verdict_table_fits_100_columns_and_says_everything() -> None:
 
 
 def test_crashes_wrap_under_their_line() -> None:
-    fail = m.Failure(type="RuntimeError", message="camera /dev/video0 not found " * 3,
-                     where="crashy_nodes.py:12", function="open_camera", during="on_start")  # fmt: skip
+    fail = m.Failure(
+        type="RuntimeError", message="camera /dev/video0 not found " * 3,
+        where="crashy_nodes.py:12", function="open_camera", during="on_start",
+    )  # fmt: skip
     crash = Crash("filtered", "local", "FATAL", fail, Path("/tmp/run/crashed/filtered.log"))
     text = render_crashes([run_of("camera", [], (crash,))])
     assert widest(text) <= WIDTH, text
@@ -73,7 +75,8 @@ def test_a_table_wraps_only_the_columns_it_may() -> None:
     rows = [("A", "B", "C"), ("x" * 30, "word " * 30, "y" * 50)]
     text = table(rows, wrapping=(1,), width=100)
     assert widest(text) <= 100
-    assert all(line.startswith("x" * 30) or line.startswith(" " * 30) for line in text.splitlines()[1:])
+    lines = text.splitlines()[1:]
+    assert all(line.startswith("x" * 30) or line.startswith(" " * 30) for line in lines)
 
 
 def test_banner_and_progress_lines_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -86,7 +89,9 @@ def test_banner_and_progress_lines_fit(tmp_path: Path, capsys: pytest.CaptureFix
     assert "  links   to tls/10.0.0.2:7447: not linked yet" in text.splitlines()
     assert "".join(line.strip() for line in text.splitlines()[-2:]).endswith(logs.lstrip("/")[-20:])
     show = state_printer()
-    reason = "exited with status 1: RuntimeError: camera /dev/video0 not found (agv.py:42 in on_start)"
+    reason = (
+        "exited with status 1: RuntimeError: camera /dev/video0 not found (agv.py:42 in on_start)"
+    )
     show(m.NodeState(stamp=0.0, node="depth_camera_driver", host="h", state="BACKOFF", pid=4242,
                      reason=reason))  # fmt: skip
     out = capsys.readouterr().out

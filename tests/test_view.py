@@ -14,8 +14,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
-import socket
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -356,7 +356,8 @@ def test_a_display_that_answers_is_used(tmp_path, monkeypatch):
     (tmp_path / "wayland-0").touch()
     wayland = {"WAYLAND_DISPLAY": "wayland-0", "XDG_RUNTIME_DIR": str(tmp_path)}
     assert view.display_problem(wayland) is None
-    assert "no Wayland display" in (view.display_problem({**wayland, "WAYLAND_DISPLAY": "w-9"}) or "")
+    missing = view.display_problem({**wayland, "WAYLAND_DISPLAY": "w-9"})
+    assert "no Wayland display" in (missing or "")
 
 
 def listeners(port: int) -> set[str]:

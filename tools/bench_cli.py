@@ -111,8 +111,10 @@ def main() -> None:
         agent = Tls(ca=str(local / "ca.pem"), cert=str(local / "agent.pem"),
                     key=str(local / "agent.key"))  # fmt: skip
         plain, tls, none = free_port(), free_port(), free_port()
-        with relay_system(tmp) as hub, router(f"tcp/127.0.0.1:{plain}"), router(
-            f"tls/127.0.0.1:{tls}", agent
+        with (
+            relay_system(tmp) as hub,
+            router(f"tcp/127.0.0.1:{plain}"),
+            router(f"tls/127.0.0.1:{tls}", agent),
         ):
             cases: list[tuple[str, list[str], Callable[[int], bool]]] = [
                 ("param nosuch (running system)", ["param", "nosuch", "--connect", hub],

@@ -200,4 +200,3 @@ def _plain_hub(ep: str, host: str, port: int) -> str | None:
 
 def _reason(e: BaseException) -> str:
     return str(getattr(e, "reason", None) or e).lower().replace("_", " ")
-

@@ -53,9 +53,7 @@ class Endpoints:
         return {
             ep
             for ep, (proto, _, port) in self._parts.items()
-            if any(
-                p == proto and pt == port and h in self._addresses[ep] for p, h, pt in ends
-            )
+            if any(p == proto and pt == port and h in self._addresses[ep] for p, h, pt in ends)
         }
 
 

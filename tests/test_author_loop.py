@@ -170,7 +170,7 @@ def test_bad_injections_are_refused_in_one_line_and_change_nothing(system, bus, 
         (("measurement", "Level=nan"), "Level may not be nan"),
         (("measurement", "Level=7", "--for", "soon"), "expected a duration"),
         (("set_params", "source", "value=high"), "source"),
-        (("set_params", "nobody", "value=1"), "no component 'nobody'"),
+        (("set_params", "nobody", "value=1"), "no node 'nobody'"),
         (("relay", "x"), "expected key=value arguments"),
     ):
         one_line_error(rra(sys_, "inject", *args), text)

@@ -19,8 +19,6 @@ import struct
 import sys
 import time
 
-from dora import Node
-
 PID_SEQ = struct.Struct("<qq")
 
 
@@ -35,8 +33,14 @@ def payload(seq: int) -> bytes:
     )  # fmt: skip
 
 
+def _node():  # -> dora.Node (imported here: payload() needs no dora)
+    from dora import Node
+
+    return Node()
+
+
 def pinger(out: str, n: int, warm: int) -> None:
-    node = Node()
+    node = _node()
     samples: list[float] = []
     seq, expected = 1, payload(1)
     sent = time.perf_counter()
@@ -68,14 +72,14 @@ def pinger(out: str, n: int, warm: int) -> None:
 
 
 def echo() -> None:
-    node = Node()
+    node = _node()
     for event in node:
         if event["type"] == "INPUT":
             node.send_output("out", event["value"])
 
 
 def source() -> None:
-    node = Node()
+    node = _node()
     pid, seq = os.getpid(), 0
     for event in node:
         if event["type"] == "INPUT":
@@ -88,7 +92,7 @@ def relay() -> None:
 
 
 def recorder(out: str) -> None:
-    node = Node()
+    node = _node()
     with open(out, "a", buffering=1) as f:
         for event in node:
             if event["type"] == "INPUT":

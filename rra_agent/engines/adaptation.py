@@ -139,13 +139,9 @@ class AdaptationEngineProcess(EngineProcess):
     def _on_state(self, sample: zenoh.Sample) -> None:
         """The Run-time Resolution Engine leader's state: which implementations are
         unavailable (only its live leader's state counts)."""
-        state = receive(sample.payload, "state", _STATE)
-        if isinstance(state, Refused):
-            return self.drop(state.code, f"engine state: {state.detail}")
-        if self.resolution is None or not self.resolution.is_leader(state.fence):
-            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
-            return
-        self.loop.post(lambda: self._availability(state.unavailable))
+        state = self.leader_state(sample, self.resolution)
+        if state is not None:
+            self.loop.post(lambda: self._availability(state.unavailable))
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
         """Decide again without the features that need an unavailable implementation."""

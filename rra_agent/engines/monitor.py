@@ -46,6 +46,7 @@ measurement with its newest value, when it was computed and from what (``rra sta
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import importlib
 import sys
@@ -74,7 +75,6 @@ from rra_agent.engines.injection import (
     inject_text,
     typed_value,
 )
-from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
@@ -575,11 +575,25 @@ def _matching(pub: zenoh.Publisher) -> bool:
     return bool(getattr(status, "matching", status))
 
 
+def arguments() -> argparse.ArgumentParser:
+    """The command line of ``python -m rra_agent.engines.monitor``."""
+    from rra_agent.engines.launch import engine_arguments
+
+    return engine_arguments("rra monitor", __doc__)
+
+
+def warm_up(argv: list[str]) -> None:
+    """The fork server's hook (`rra_agent.engines.launch.warm_up`)."""
+    from rra_agent.engines import launch
+
+    launch.warm_up(argv, arguments)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.monitor --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_arguments, engine_setup
+    from rra_agent.engines.launch import engine_setup, parse_engine_args
 
-    args = engine_arguments("rra monitor", __doc__).parse_args(argv)
+    args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
     if setup is None:
         return 2

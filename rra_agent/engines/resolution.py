@@ -32,6 +32,7 @@ agents own them. Status (selection, CV values, desired and observed nodes) is se
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import threading
@@ -71,7 +72,6 @@ from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Executor, Outcome, StepFailed, UnitFailure, spec_for
-from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.errors import RraError
@@ -1336,15 +1336,29 @@ def _observed(st: m.NodeState) -> dict[str, Any]:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.engines.resolution --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_arguments, engine_setup
+def arguments() -> argparse.ArgumentParser:
+    """The command line of ``python -m rra_agent.engines.resolution``."""
+    from rra_agent.engines.launch import engine_arguments
 
     parser = engine_arguments("rra resolution", __doc__)
     parser.add_argument("--retry-after", type=float, default=5.0)
     parser.add_argument("--start-timeout", type=float, default=15.0)
     parser.add_argument("--reconcile-period", type=float, default=1.0)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def warm_up(argv: list[str]) -> None:
+    """The fork server's hook (`rra_agent.engines.launch.warm_up`)."""
+    from rra_agent.engines import launch
+
+    launch.warm_up(argv, arguments)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rra_agent.engines.resolution --package PKG --select F,...``."""
+    from rra_agent.engines.launch import engine_setup, parse_engine_args
+
+    args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
     if setup is None:
         return 2

@@ -138,7 +138,7 @@ def _components(old: Deployment, new: Deployment, running: Running, out: Compari
             out.refusals.append(doc.error(
                 f"component {name} runs{f' on host {host}' if host else ''}: it cannot be "
                 "removed while the system runs (select a configuration without it first)",
-                doc.loc("components"),
+                doc.key_loc("components"),
             ))  # fmt: skip
         else:
             out.changes.append(f"component {name}: removed")
@@ -293,7 +293,7 @@ def plain(obj: Any) -> Any:
 def _strip(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: _strip(v) for k, v in value.items() if k not in ("span", "description")}
-    if isinstance(value, list):
+    if isinstance(value, list | tuple):
         return [_strip(v) for v in value]
     return value
 

@@ -155,18 +155,18 @@ def _send(args: argparse.Namespace, client: BusClient, request: m.Reload) -> int
             print(cut(f"rra reload: {line}", WIDTH, args.wide), file=sys.stderr)
         print("rra reload: refused: nothing was changed", file=sys.stderr)
         return 1
+    committed = time.perf_counter() - t0
     result = reply.result if isinstance(reply.result, dict) else {}
     models, previous = result.get("models", "?"), result.get("previous", "?")
     seconds = watch.wait(models, min(args.timeout, 10.0))
-    committed = time.perf_counter() - t0
     for line in result.get("plan") or []:
         print(cut(f"  plan: {line}", WIDTH, args.wide))
-    head = f"rra reload: models {models} in effect (were {previous}) after {committed:.3f} s"
+    print(f"rra reload: models {models} run (were {previous}), switched in {committed:.3f} s")
     if seconds is not None:
-        head += f"; new rules deciding after {seconds - t0:.3f} s"
+        print(f"rra reload: the Adaptation Engine decides under them {seconds - t0:.3f} s after "
+              "the command")  # fmt: skip
     elif watch.adaptation:
-        head += "; no selection under them yet (see `rra status`)"
-    print(cut(head, WIDTH, args.wide))
+        print("rra reload: no selection under them yet (see `rra status`)")
     return 0
 
 

@@ -489,6 +489,7 @@ class AdaptationEngineProcess(EngineProcess):
             "conflicts": [
                 msgspec.to_builtins(_report(c, c.since, None)) for c in self.conflicts.current
             ],
+            "models": self.dep.models,
         }
 
     def extra_counters(self) -> dict[str, int]:

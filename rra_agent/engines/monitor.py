@@ -77,6 +77,8 @@ REFRESH = 1.0
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
+_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
+_REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
@@ -419,7 +421,10 @@ class ContextMonitorProcess(EngineProcess):
         self._source_keys = wanted
 
     def status(self) -> dict[str, Any]:
-        return {"measurements": {n: msg.value for n, msg in self.latest.items()}}
+        return {
+            "measurements": {n: msg.value for n, msg in self.latest.items()},
+            "models": self.dep.models,
+        }
 
     def tick(self, now: float) -> None:
         self.publish_status()
@@ -435,6 +440,21 @@ class ContextMonitorProcess(EngineProcess):
             self.rec.writer.close(end=time.time())
 
     # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def starting(self) -> None:
+        """A replica started after a reload runs the models the system runs."""
+        assert self.session is not None
+        for reply in self.session.get(self.keys.engine_ctl("resolution"),
+                                      payload=_REQ.encode(m.GetState()), timeout=1.0):  # fmt: skip
+            if reply.ok is None:
+                continue
+            try:
+                answer = _REPLY.decode(reply.ok.payload.to_bytes())
+                if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+                    self._follow_models(str(answer.result.get("models", "")))
+                    return
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+
     def serve(self, request: m.EngineRequest) -> m.Reply:
         match request:
             case m.PrepareModels(bundle=bundle):

@@ -1022,6 +1022,8 @@ class ResolutionEngineProcess(EngineProcess):
         state = self._saved_state()
         if state is None:
             return
+        self._follow_models(state.models)  # the models of that state (a reload before)
+        self.history = list(state.history)
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
         self._take_state(state)
@@ -1061,6 +1063,7 @@ class ResolutionEngineProcess(EngineProcess):
             "deployed": self.deployed,
             # What was decided is not all in effect: a plan failed in part.
             "failed": bool(self.degraded),
+            "models": self.dep.models,
         }
 
     def _params_apart(self) -> dict[str, dict[str, dict[str, Any]]]:

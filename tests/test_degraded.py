@@ -192,15 +192,21 @@ def test_an_operator_sees_the_degraded_state_forces_the_camera_and_retries(
         agv.client.close()
 
 
-def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path, request):
-    """Unavailable, then plugged in: the next probe (after the component's cooldown, 2 s)
-    starts it, the engines re-admit it and, in the human zone, switch to it."""
+def agv_with_camera_at(tmp_path: Path) -> tuple[Path, Path]:
+    """A copy of the AGV whose camera is the file ``tmp_path/video0`` (not there yet)."""
     pkg = tmp_path / "agv"
     shutil.copytree(AGV, pkg, ignore=shutil.ignore_patterns("__pycache__"))
     device = tmp_path / "video0"
     edit_yaml(pkg / "system.yaml", lambda d: next(
         c for c in d["components"] if c["name"] == "depth_camera"
     )["parameters"]["device"].update(value=str(device)))  # fmt: skip
+    return pkg, device
+
+
+def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path, request):
+    """Unavailable, then plugged in: the next probe (after the component's cooldown, 2 s)
+    starts it, the engines re-admit it and, in the human zone, switch to it."""
+    pkg, device = agv_with_camera_at(tmp_path)
     agv = Agv(procs, bus, tmp_path / "run", pkg, request.config.getoption("--hostile"))
     try:
         agv.wait(lambda e: e["deployed"] and "Lidar" in e["effective"], "deployment")
@@ -220,12 +226,7 @@ def test_a_probe_that_hangs_does_not_hold_the_adaptation(procs, bus, tmp_path, r
     """The camera's driver hangs in its start: its probe waits up to its timeout on a thread
     of its own while the engines go on adapting (the zone changes back and the speed limit
     follows while the probe's node is still starting)."""
-    pkg = tmp_path / "agv"
-    shutil.copytree(AGV, pkg, ignore=shutil.ignore_patterns("__pycache__"))
-    device = tmp_path / "video0"
-    edit_yaml(pkg / "system.yaml", lambda d: next(
-        c for c in d["components"] if c["name"] == "depth_camera"
-    )["parameters"]["device"].update(value=str(device)))  # fmt: skip
+    pkg, device = agv_with_camera_at(tmp_path)
     agv = Agv(procs, bus, tmp_path / "run", pkg, request.config.getoption("--hostile"))
     try:
         agv.wait(lambda e: e["deployed"] and "Lidar" in e["effective"], "deployment")

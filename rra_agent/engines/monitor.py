@@ -41,6 +41,7 @@ newest value of each measurement, so a restarted Adaptation Engine resumes from 
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import sys
 import time
@@ -54,13 +55,12 @@ import zenoh
 from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import Refused, data_limit, receive
+from rra_agent.bus.counters import data_limit
 from rra_agent.core.monitor import ContextMonitor
 from rra_agent.core.plan import topic_of
 from rra_agent.core.samples import MALFORMED, Refusal
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
-from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.models import deploy_bundle, find_bundle
 from rra_agent.errors import RraError
@@ -278,15 +278,12 @@ class ContextMonitorProcess(EngineProcess):
 
     # ---- availability (failure as context) ------------------------------------------------
     def _on_state(self, sample: zenoh.Sample) -> None:
-        state = receive(sample.payload, "state", _STATE)
-        if isinstance(state, Refused):
-            return self.drop(state.code, f"engine state: {state.detail}")
-        if self.resolution is None or not self.resolution.is_leader(state.fence):
-            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
-            return
-        self.loop.post(lambda: self._resolution_state(state))
+        state = self.leader_state(sample, self.resolution)
+        if state is not None:
+            self.loop.post(lambda: self._resolution_state(state))
 
     def _resolution_state(self, state: m.EngineState) -> None:
+        """The leader's models first (a reload), then what is unavailable."""
         self._follow_models(state.models)
         self._availability(state.unavailable)
 
@@ -528,13 +525,25 @@ def _refresh(dep: Deployment) -> dict[str, float]:
     }
 
 
+def arguments() -> argparse.ArgumentParser:
+    """The command line of ``python -m rra_agent.engines.monitor``."""
+    from rra_agent.engines.launch import engine_arguments
+
+    return engine_arguments("rra monitor", __doc__)
+
+
+def warm_up(argv: list[str]) -> None:
+    """The fork server's hook (`rra_agent.engines.launch.warm_up`)."""
+    from rra_agent.engines import launch
+
+    launch.warm_up(argv, arguments)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.monitor --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_arguments, engine_setup
+    from rra_agent.engines.launch import engine_setup, parse_engine_args, record_dir
 
-    args = engine_arguments("rra monitor", __doc__).parse_args(argv)
-    from rra_agent.engines.launch import record_dir
-
+    args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
     if setup is None:
         return 2

@@ -31,6 +31,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 import msgspec
 
 from rra_agent.models.system import Implementation, ParamType, Scheduling, Supervision
+from rra_agent.package.bundle import ModelBundle
 
 T = TypeVar("T")
 
@@ -178,6 +179,9 @@ class Selection(Msg, tag="selection"):
     conflicts: list[ConflictReport] = []
     #: Each feature and CV value this selection changes, and why (empty on heartbeats).
     why: list[Why] = []
+    #: The digest of the models it was decided under (`ModelBundle.digest`): the Run-time
+    #: Resolution Engine refuses a selection made under other models than its own.
+    models: str = ""
 
 
 SelectionMessage = Selection | ConflictReport
@@ -276,6 +280,9 @@ class Claim(Msg, tag="claim"):
 class SetParams(Msg, tag="set_params"):
     params: dict[str, Any]
     fence: Fence | None = None
+    #: New declarations (type and bounds) of these parameters, taken before the values are
+    #: checked: a reload changed their bounds (``rra reload``).
+    decl: dict[str, ParamDecl] = {}
 
 
 class Rewire(Msg, tag="rewire"):
@@ -475,7 +482,27 @@ class ListNodes(Msg, tag="list_nodes"):
     pass
 
 
-HostRequest = StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
+class PrepareModels(Msg, tag="prepare_models"):
+    """From the Run-time Resolution Engine leader during a reload, to every engine replica
+    and host agent: load and check these models and hold them ready (nothing changes yet).
+    A host agent also admits what they add from now on (its catalog: both versions)."""
+
+    bundle: ModelBundle
+    fence: Fence | None = None
+
+
+class CommitModels(Msg, tag="commit_models"):
+    """From the Run-time Resolution Engine leader once it runs the models ``digest``: a
+    host agent keeps only their catalog."""
+
+    digest: str
+    fence: Fence | None = None
+
+
+HostRequest = (
+    StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
+    | PrepareModels | CommitModels
+)
 
 
 # ---- component containers (host agent -> its containers) ----------------------------------
@@ -603,6 +630,25 @@ class OverrideMeasurement(Msg, tag="override_measurement"):
     operator: str = ""
 
 
+class Reload(Msg, tag="reload"):
+    """An operator's edited models for the running system (``rra reload``), to the Run-time
+    Resolution Engine leader: checked (what cannot change live is refused, nothing changed),
+    prepared by every engine replica and host agent, then taken by all at once. ``base``: the
+    digest of the models the operator's diff was made against (refused if they changed
+    since). ``undo``: go back to the models before the last reload (no ``bundle``)."""
+
+    bundle: ModelBundle | None = None
+    base: str = ""
+    undo: bool = False
+    operator: str = ""
+
+
+class GetModels(Msg, tag="get_models"):
+    """The model files of one version (``digest``; empty: the current one), as a bundle."""
+
+    digest: str = ""
+
+
 EngineRequest = (
     Status
     | Describe
@@ -616,6 +662,9 @@ EngineRequest = (
     | Explain
     | Inject
     | OverrideMeasurement
+    | Reload
+    | GetModels
+    | PrepareModels
 )
 
 
@@ -670,6 +719,10 @@ class EngineState(Msg, tag="engine_state"):
     degraded: list[str] = []
     #: When this state was made (wall clock).
     stamp: float = 0.0
+    #: The digest of the models the engines run (`ModelBundle.digest`), and those before
+    #: it, newest last (``rra reload --undo`` goes back to the last one).
+    models: str = ""
+    history: list[str] = []
 
 
 StateMessage = EngineState

@@ -125,6 +125,16 @@ COMMANDS: dict[str, Command] = {
         lambda p: _configure("rra_agent.cli.test:configure", p),
         lazy("rra_agent.cli.test:run"),
     ),
+    "replay": Command(
+        "re-run a recorded run's decisions offline (--package EDITED: what-if)",
+        lambda p: _configure("rra_agent.cli.replay:configure", p),
+        lazy("rra_agent.cli.replay:run"),
+    ),
+    "reload": Command(
+        "take edited models into the running system without restarting it (--undo)",
+        lambda p: _configure("rra_agent.cli.reload:configure", p),
+        lazy("rra_agent.cli.reload:run"),
+    ),
     "certs": Command(
         "make the system CA and the mTLS certificates of every host and role",
         lambda p: _configure("rra_agent.cli.certs:configure", p),

@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -55,12 +56,16 @@ from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
 from rra_agent.core.monitor import measurement_problem
 from rra_agent.core.overrides import OverrideError
 from rra_agent.core.reachable import reachable
+from rra_agent.core.reload import carry_over, engine_for
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
 from rra_agent.engines.explain import causes, core_why, reachable_summary, wire_why
 from rra_agent.engines.leaders import LeaderWatch
-from rra_agent.errors import SelectionError
+from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.errors import RraError, SelectionError
+from rra_agent.package.bundle import ModelBundle
+from rra_agent.record.hooks import AdaptationRecorder, open_writer
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
@@ -87,6 +92,7 @@ class AdaptationEngineProcess(EngineProcess):
         tick: float = 0.05,
         heartbeat: float = 1.0,
         resume_timeout: float = 60.0,
+        run_dir: Path | None = None,
     ) -> None:
         if dep.package.adaptation is None:
             raise ValueError(f"package {dep.package.name!r} has no adaptation model")
@@ -122,6 +128,15 @@ class AdaptationEngineProcess(EngineProcess):
         #: The operators' overrides received: (measurement, stamp) -> who (the newest
         #: `OVERRIDES_KEPT`), so that an explanation says which value read was one.
         self.overrides: dict[tuple[str, float], str] = {}
+        #: The run's record (``<run>/record/``): every call on the core (docs/recording.md).
+        self.run_dir = run_dir
+        self.rec: AdaptationRecorder | None = None
+        #: The Resolution Engine leader's unavailable implementations, as last received.
+        self._unavailable_raw: list[m.Unavailable] = []
+        #: Models prepared for a reload, by digest, and the models the Run-time Resolution
+        #: Engine leader runs (this replica switches to them: `_follow_models`).
+        self._prepared: dict[str, tuple[Deployment, AdaptationEngine]] = {}
+        self._leader_models = dep.models
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -140,6 +155,8 @@ class AdaptationEngineProcess(EngineProcess):
             self.counters.received += 1
             self.measurements[msg.name] = (msg.value, msg.stamp)
             self.changed.add(msg.name)
+            if self.rec is not None:
+                self.rec.received(msg)
             schedule, self._scheduled = not self._scheduled, True
         if schedule and not self.loop.run_or_post(self._evaluate_posted):
             with self.lock:
@@ -179,10 +196,18 @@ class AdaptationEngineProcess(EngineProcess):
         unavailable (only its live leader's state counts)."""
         state = self.leader_state(sample, self.resolution)
         if state is not None:
-            self.loop.post(lambda: self._availability(state.unavailable))
+            self.loop.post(lambda: self._resolution_state(state))
+
+    def _resolution_state(self, state: m.EngineState) -> None:
+        """The leader's models first (a reload), then what is unavailable."""
+        self._follow_models(state.models)
+        self._availability(state.unavailable)
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
         """Decide again without the features that need an unavailable implementation."""
+        if unavailable != self._unavailable_raw and self.rec is not None:
+            self.rec.avail(unavailable)
+        self._unavailable_raw = list(unavailable)
         gone = {(u.component, u.implementation): u.reason for u in unavailable}
         if self.engine.set_unavailable(unavailable_features(self.needs, gone)):
             self._unavailable_told.clear()
@@ -194,9 +219,10 @@ class AdaptationEngineProcess(EngineProcess):
         """Resume from the running system before taking part in the election."""
         state = self._ask_state()
         if state is not None:
+            self._follow_models(state.models)
             self._adopt(state.selection, state.cv, "resumed from the system's state")
             self._availability(state.unavailable)
-            self.engine.forced = dict(state.forced)
+            self._set_forced(state.forced)
             self.conflicts.adopt(_live(c) for c in state.conflicts)
             if state.selection_fence is not None:
                 self._floor = state.selection_fence.epoch
@@ -246,10 +272,19 @@ class AdaptationEngineProcess(EngineProcess):
                     self.measurements[msg.name] = (msg.value, msg.stamp)
 
     def _adopt(self, selection: list[str], cv: dict[str, float], why: str) -> None:
+        error = ""
         try:
             self.engine.adopt(selection, cv)
         except SelectionError as e:
+            error = str(e)
             self.refuse("selection", f"{why}: {e}")
+        if self.rec is not None:
+            self.rec.adopt(selection, cv, why, error)
+
+    def _set_forced(self, forced: dict[str, bool]) -> None:
+        if self.rec is not None and forced != self.engine.forced:
+            self.rec.forced(forced)
+        self.engine.forced = dict(forced)
 
     def _follow(self, msg: m.Selection) -> None:
         """A selection of the leader: a standby keeps the same state. Only the leader this
@@ -260,9 +295,11 @@ class AdaptationEngineProcess(EngineProcess):
         if msg.fence.term != self.election.leader:
             self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
             return
+        if msg.models != self.dep.models and not self._follow_models(msg.models):
+            return  # models it cannot get: it keeps its own state (refused and counted)
         self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
         self.engine.note(core_why(w) for w in msg.why)
-        self.engine.forced = dict(msg.forced)
+        self._set_forced(msg.forced)
         self.conflicts.adopt(_live(c) for c in msg.conflicts)
         self.seq = max(self.seq, msg.seq)
 
@@ -280,6 +317,26 @@ class AdaptationEngineProcess(EngineProcess):
             self.changed = set()
         now = time.time()
         result = self.engine.tick(now, values, changed=changed, explain=self.leading)
+        seq = self.seq
+        try:
+            return self._decided(result, values, now, force)
+        finally:
+            if self.rec is not None:
+                self._record_tick(result, values, changed, force, seq)
+
+    def _record_tick(
+        self, result: TickResult, values: dict, changed: set[str], force: bool, seq: int
+    ) -> None:
+        assert self.rec is not None
+        self.rec.tick(
+            result.now, values, changed, force=force, lead=self.leading,
+            selection=result.selection, cv=result.cv,
+            fired=[f.rule if f.ruleset is None else f"{f.ruleset}.{f.rule}" for f in result.fired],
+            seq=self.seq if self.seq != seq else 0,
+        )  # fmt: skip
+
+    def _decided(self, result: TickResult, values: dict, now: float, force: bool) -> TickResult:
+        """The leader publishes what it decided (a change, an event, or a heartbeat due)."""
         if not self.leading:
             return result
         started: list[LiveConflict] = []
@@ -367,6 +424,7 @@ class AdaptationEngineProcess(EngineProcess):
                 forced=dict(self.engine.forced),
                 conflicts=[_report(c, c.since, None) for c in self.conflicts.current],
                 why=why,
+                models=self.dep.models,
             )
         )
         self.last_sent = now
@@ -392,6 +450,8 @@ class AdaptationEngineProcess(EngineProcess):
                 return self.force(dict(features), who)
             case m.Explain():
                 return self.explain(request)
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare(bundle)
         return super().serve(request)
 
     def explain(self, request: m.Explain) -> m.Reply:
@@ -431,7 +491,11 @@ class AdaptationEngineProcess(EngineProcess):
             self.engine.force(features)
         except OverrideError as e:
             self.refuse("override", str(e))
+            if self.rec is not None:
+                self.rec.force(features, who, str(e))
             return m.Err(message=str(e), code="refused")
+        if self.rec is not None:
+            self.rec.force(features, who, "")
         result = self.evaluate(force=True)
         forced = self.engine.forced
         asked = ", ".join(f"{f} {v}" for f, v in sorted(features.items()))
@@ -444,6 +508,8 @@ class AdaptationEngineProcess(EngineProcess):
 
     # ---- engine hooks ------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
+        writer = open_writer(self.run_dir, self.name, self.role, self.dep, self.host)
+        self.rec = AdaptationRecorder(writer) if writer is not None else None
         self.viz = open_logger(self.name)
         self.events = EventSink(session, self.keys.events, None)
         self.publisher = session.declare_publisher(
@@ -465,7 +531,10 @@ class AdaptationEngineProcess(EngineProcess):
         ]
 
     def on_leadership(self, leading: bool) -> None:
+        if self.rec is not None:
+            self.rec.lead(leading, self.fence)
         if leading:
+            self._follow_models(self._leader_models)  # never decide under other models
             self.evaluate(force=True)  # the system learns the new leader's fence at once
 
     def tick(self, now: float) -> None:
@@ -483,6 +552,7 @@ class AdaptationEngineProcess(EngineProcess):
             "conflicts": [
                 msgspec.to_builtins(_report(c, c.since, None)) for c in self.conflicts.current
             ],
+            "models": self.dep.models,
         }
 
     def extra_counters(self) -> dict[str, int]:
@@ -493,6 +563,61 @@ class AdaptationEngineProcess(EngineProcess):
         self.events = None
         if self.viz:
             self.viz.close()
+        if self.rec is not None:
+            self.rec.writer.close(end=time.time())
+
+    # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """Load and compile these models, ready to switch to (nothing changes yet)."""
+        try:
+            self._prepared[bundle.digest] = self._load_models(bundle)
+        except RraError as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        return m.Ok(result={"models": bundle.digest})
+
+    def _load_models(self, bundle: ModelBundle) -> tuple[Deployment, AdaptationEngine]:
+        dep = deploy_bundle(bundle, self.dep)
+        if dep.package.adaptation is None:
+            raise RraError("the new models have no adaptation model")
+        return dep, engine_for(dep.package.features, dep.selection, dep.package.adaptation)
+
+    def _follow_models(self, digest: str) -> bool:
+        """Run the models ``digest`` (the Resolution Engine leader's, or this replica's
+        leader's): at once if prepared, else loaded now. False (refused and counted) when
+        they cannot be had: the replica keeps its own and decides nothing new under them
+        while it does not lead."""
+        if not digest:
+            return True
+        self._leader_models = digest
+        if digest == self.dep.models:
+            return True
+        try:
+            prepared = self._prepared.pop(digest, None)
+            if prepared is None:
+                bundle = find_bundle(digest, self.run_dir, self.session, self.keys)
+                prepared = self._load_models(bundle)
+        except RraError as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+            return False
+        self.switch_models(*prepared)
+        return True
+
+    def switch_models(self, dep: Deployment, engine: AdaptationEngine) -> None:
+        """Continue on new models: the core state carried over (`carry_over`), then an
+        evaluation under them at once (the leader publishes it)."""
+        previous = self.dep.models
+        self.needs = requirements(dep.package.features, dep.package.runtime)
+        gone = {(u.component, u.implementation): u.reason for u in self._unavailable_raw}
+        self.engine = carry_over(self.engine, engine, unavailable_features(self.needs, gone))
+        self.dep = dep
+        self.declared = {meas.name: meas for meas in dep.package.measurements.measurements}
+        self._prepared.clear()
+        self._unavailable_told.clear()
+        if self.rec is not None:
+            self.rec.reload(dep.models, previous)
+        print(f"rra {self.name}: models {dep.models} (were {previous})", flush=True)
+        if self.resumed:
+            self.evaluate(force=True)
 
 
 def _report(c: LiveConflict, now: float, lasted: float | None) -> m.ConflictReport:
@@ -551,7 +676,7 @@ def warm_up(argv: list[str]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.adaptation --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_setup, parse_engine_args
+    from rra_agent.engines.launch import engine_setup, parse_engine_args, record_dir
 
     args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
@@ -560,8 +685,9 @@ def main(argv: list[str] | None = None) -> int:
     dep, bus, host, name = setup
     try:
         proc = AdaptationEngineProcess(
-            dep, bus, host=host, name=name, tick=args.tick, heartbeat=args.heartbeat
-        )
+            dep, bus, host=host, name=name, tick=args.tick, heartbeat=args.heartbeat,
+            run_dir=record_dir(args),
+        )  # fmt: skip
     except ValueError as e:
         print(f"rra adaptation: {e}", file=sys.stderr)
         return 2

@@ -166,6 +166,10 @@ class EngineProcess:
                 return self._reply(query, m.Ok(result={"pid": os.getpid(), "name": self.name}))
             case m.Stats():
                 return self._reply(query, m.Ok(result=self.stats()))
+        if isinstance(req, m.PrepareModels):  # loading models takes a while: not on the loop
+            threading.Thread(target=lambda: self._reply(query, self._serve(req)),
+                             name="prepare-models", daemon=True).start()  # fmt: skip
+            return None
         if not self.loop.post(lambda: self._reply(query, self._serve(req))):
             self._reply(query, m.Err(message=f"{self.name} is overloaded", code="busy"))
         return None

@@ -829,8 +829,10 @@ def apply_request(spec: NodeSpec, req: m.NodeRequest) -> NodeSpec:
             return msgspec.structs.replace(spec, active=True)
         case m.Deactivate():
             return msgspec.structs.replace(spec, active=False)
-        case m.SetParams(params=params):
-            return msgspec.structs.replace(spec, params={**spec.params, **params})
+        case m.SetParams(params=params, decl=decl):
+            return msgspec.structs.replace(
+                spec, params={**spec.params, **params}, decl={**spec.decl, **decl}
+            )
         case m.Rewire(port=port, keys=keys):
             ports = dict(spec.ports)
             ports[port] = msgspec.structs.replace(ports[port], keys=list(keys))

@@ -48,10 +48,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -76,9 +76,13 @@ from rra_agent.engines.injection import (
     typed_value,
 )
 from rra_agent.engines.leaders import LeaderWatch
+from rra_agent.engines.models import deploy_bundle, find_bundle
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
-from rra_agent.package.imports import add_package_path
+from rra_agent.package.bundle import ModelBundle
+from rra_agent.package.imports import import_dotted as import_dotted
+from rra_agent.package.imports import measurement_functions as package_measurement_functions
+from rra_agent.record.hooks import MonitorRecorder, open_writer
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
@@ -88,49 +92,13 @@ _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 _INJ = m.Codec[m.Injection](m.Injection)
-
-
-def import_dotted(dotted: str) -> Any:
-    """``pkg.module.attr`` -> the object (the longest importable module prefix is used)."""
-    parts = dotted.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:i]))
-        except ModuleNotFoundError:
-            continue
-        for attr in parts[i:]:
-            obj = getattr(obj, attr)
-        return obj
-    raise RraError(f"cannot import {dotted!r}")
+_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
+_REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
-    """Measurement name -> its function: a function of the source data type, or a dotted path.
-
-    The package folder is appended to ``sys.path`` (`rra_agent.package.imports`) so a
-    package may ship its own functions.
-    """
-    pkg = dep.package
-    add_package_path([pkg.root])
-    out = {}
-    for meas in pkg.measurements.measurements:
-        if meas.function is None:
-            continue
-        dotted = meas.function
-        if "." not in dotted:
-            for src in meas.inputs:
-                ep = parse_endpoint(src)
-                comp = pkg.system.component(ep.component)
-                port = comp.port(ep.port) if comp else None
-                dt = pkg.measurements.data_type(port.type) if port else None
-                if dt is not None and dotted in dt.functions:
-                    dotted = dt.functions[dotted]
-                    break
-        fn = import_dotted(dotted)
-        if not callable(fn):
-            raise RraError(f"function {dotted!r} of measurement {meas.name} is not callable")
-        out[meas.name] = fn
-    return out
+    """Measurement name -> its function (`rra_agent.package.imports.measurement_functions`)."""
+    return package_measurement_functions(dep.package)
 
 
 def model_hosts(dep: Deployment, default: str) -> list[str]:
@@ -147,7 +115,15 @@ class ContextMonitorProcess(EngineProcess):
 
     role = NAME
 
-    def __init__(self, dep: Deployment, bus: BusConfig, *, host: str = "local", name: str = NAME):
+    def __init__(
+        self,
+        dep: Deployment,
+        bus: BusConfig,
+        *,
+        host: str = "local",
+        name: str = NAME,
+        run_dir: Path | None = None,
+    ):
         super().__init__(dep, bus, host=host, name=name)
         self.core = ContextMonitor(
             dep.package.measurements, measurement_functions(dep), self._port_types()
@@ -161,12 +137,17 @@ class ContextMonitorProcess(EngineProcess):
         self.latest: dict[str, m.Measurement] = {}
         #: The last one published of each name, and how often one unchanged is sent again.
         self.sent: dict[str, m.Measurement] = {}
-        self.refresh = {
-            meas.name: REFRESH if meas.max_age_ms is None else meas.max_age_ms / 4000.0
-            for meas in dep.package.measurements.measurements
-        }
-        #: Samples waiting to be processed: the newest per source (older ones coalesced).
-        self._pending: dict[str, tuple[Any, float]] = {}
+        self.refresh = _refresh(dep)
+        #: Samples waiting to be processed: the newest per source (older ones coalesced),
+        #: with its send time and raw bytes.
+        self._pending: dict[str, tuple[Any, float, bytes]] = {}
+        #: The subscriber of each source (re-declared when a reload changes the sources).
+        self._sources: dict[str, zenoh.Subscriber[None]] = {}
+        self._source_keys: dict[str, tuple[str, int]] = {}
+        #: The run's record: the source samples the leader computed from.
+        self.run_dir = run_dir
+        self.rec: MonitorRecorder | None = None
+        self._prepared: dict[str, Deployment] = {}
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
         #: Every host of the model with its reachability measurements (none, unless the
@@ -197,11 +178,12 @@ class ContextMonitorProcess(EngineProcess):
         ep = parse_endpoint(source)
         return self.keys.data(topic_of(self.dep.package.system, ep.component, ep.port))
 
-    def _port_types(self) -> dict[str, str]:
+    def _port_types(self, dep: Deployment | None = None) -> dict[str, str]:
         """``component.port`` -> the type its port declares, for every measured source."""
-        system = self.dep.package.system
+        dep = dep or self.dep
+        system = dep.package.system
         out = {}
-        for meas in self.dep.package.measurements.measurements:
+        for meas in dep.package.measurements.measurements:
             for src in meas.inputs:
                 ep = parse_endpoint(src)
                 comp = system.component(ep.component)
@@ -234,7 +216,8 @@ class ContextMonitorProcess(EngineProcess):
                 detail = f"{size} bytes, more than the {limit} allowed"
                 self.core.refusals.add(Refusal(source, "too_large", detail))
                 return
-            data = self.core.decode(source, sample.payload.to_bytes())
+            raw = sample.payload.to_bytes()
+            data = self.core.decode(source, raw)
             if data is None:
                 return  # refused and counted: the newest good sample stays pending
             att = sample.attachment
@@ -243,7 +226,7 @@ class ContextMonitorProcess(EngineProcess):
                 self.counters.received += 1
                 if source in self._pending:
                     self.counters.bump("coalesced")
-                self._pending[source] = (data, stamp)
+                self._pending[source] = (data, stamp, raw)
                 schedule, self._scheduled = not self._scheduled, True
             if schedule and not self.loop.run_or_post(self._process):
                 with self.lock:
@@ -262,7 +245,10 @@ class ContextMonitorProcess(EngineProcess):
         with self.lock:
             batch, self._pending = self._pending, {}
             self._scheduled = False
-        for source, (data, stamp) in batch.items():
+        rec = self.rec if self.leading else None
+        for source, (data, stamp, raw) in batch.items():
+            if rec is not None:
+                rec.sample(source, raw, stamp)
             for c in self.core.on_sample(source, data, stamp):
                 self._emit(
                     m.Measurement(name=c.name, value=c.value, stamp=time.time(), sources=c.sources)
@@ -317,7 +303,12 @@ class ContextMonitorProcess(EngineProcess):
     def _on_state(self, sample: zenoh.Sample) -> None:
         state = self.leader_state(sample, self.resolution)
         if state is not None:
-            self.loop.post(lambda: self._availability(state.unavailable))
+            self.loop.post(lambda: self._resolution_state(state))
+
+    def _resolution_state(self, state: m.EngineState) -> None:
+        """The leader's models first (a reload), then what is unavailable."""
+        self._follow_models(state.models)
+        self._availability(state.unavailable)
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
         """A new value of each availability measurement whose component changed."""
@@ -337,6 +328,8 @@ class ContextMonitorProcess(EngineProcess):
         source's next sample, up to a second later for a 1 Hz battery state), and the hosts'
         reachability (a value its predecessor published may predate what this replica has
         seen since). A replica that stops leading drops its operators' overrides."""
+        if self.rec is not None:
+            self.rec.lead(leading, self.fence)
         if not leading:
             self._end_overrides(list(self.overrides.active), "its Context Monitor stopped leading")
             return
@@ -400,19 +393,12 @@ class ContextMonitorProcess(EngineProcess):
 
     # ---- lifecycle ---------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
+        writer = open_writer(self.run_dir, self.name, self.role, self.dep, self.host)
+        self.rec = MonitorRecorder(writer) if writer is not None else None
         self.viz = open_logger(self.name)
-        for meas in self.dep.package.measurements.measurements:
-            self.publishers[meas.name] = session.declare_publisher(
-                self.keys.ctx(meas.name),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                priority=zenoh.Priority.INTERACTIVE_HIGH,
-                express=True,
-            )
-        entities: list[Any] = [
-            session.declare_subscriber(self.source_key(src), self._on_sample(src))
-            for src in self.core.sources
-        ]
-        entities.append(session.declare_queryable(self.keys.ctx_all, self._on_latest))
+        self._declare_publishers(session)
+        self._subscribe_sources(session)
+        entities: list[Any] = [session.declare_queryable(self.keys.ctx_all, self._on_latest)]
         self._events = session.declare_publisher(
             self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
         )
@@ -426,13 +412,35 @@ class ContextMonitorProcess(EngineProcess):
                 )
             )
             self._seed_hosts(session)
-        if self.availability:
-            self.resolution = LeaderWatch(session, self.keys, "resolution")
-            entities += [
-                self.resolution,
-                session.declare_subscriber(self.keys.state("resolution"), self._on_state),
-            ]
+        # The Resolution Engine leader's state: availability, and the models it runs.
+        self.resolution = LeaderWatch(session, self.keys, "resolution")
+        entities += [
+            self.resolution,
+            session.declare_subscriber(self.keys.state("resolution"), self._on_state),
+        ]
         return entities
+
+    def _declare_publishers(self, session: zenoh.Session) -> None:
+        for meas in self.dep.package.measurements.measurements:
+            if meas.name not in self.publishers:
+                self.publishers[meas.name] = session.declare_publisher(
+                    self.keys.ctx(meas.name),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.INTERACTIVE_HIGH,
+                    express=True,
+                )
+
+    def _subscribe_sources(self, session: zenoh.Session) -> None:
+        """A subscriber for every source of the model (those it has already are kept)."""
+        wanted = {src: (self.source_key(src), self.limits[src]) for src in self.core.sources}
+        for src in list(self._sources):
+            if src not in wanted or self._source_keys.get(src) != wanted[src]:
+                with contextlib.suppress(Exception):
+                    self._sources.pop(src).undeclare()
+        for src, key in wanted.items():
+            if src not in self._sources:
+                self._sources[src] = session.declare_subscriber(key[0], self._on_sample(src))
+        self._source_keys = wanted
 
     def status(self) -> dict[str, Any]:
         with self.lock:
@@ -440,6 +448,7 @@ class ContextMonitorProcess(EngineProcess):
         return {
             "measurements": {n: msg.value for n, msg in latest.items()},
             "context": context_view(self.declared.values(), latest),
+            "models": self.dep.models,
         }
 
     def snapshot(self) -> dict[str, Any]:
@@ -466,6 +475,8 @@ class ContextMonitorProcess(EngineProcess):
                 except InjectionError as e:
                     self.refuse("injection", str(e))
                     return m.Err(message=str(e), code=e.code)
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare(bundle)
         return super().serve(request)
 
     def _inject(self, req: m.Inject) -> m.Reply:
@@ -565,8 +576,96 @@ class ContextMonitorProcess(EngineProcess):
         for pub in self._inject_pubs.values():
             with contextlib.suppress(Exception):
                 pub.undeclare()
+        for sub in self._sources.values():
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._sources.clear()
         if self.viz:
             self.viz.close()
+        if self.rec is not None:
+            self.rec.writer.close(end=time.time())
+
+    # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def starting(self) -> None:
+        """A replica started after a reload runs the models the system runs."""
+        assert self.session is not None
+        for reply in self.session.get(self.keys.engine_ctl("resolution"),
+                                      payload=_REQ.encode(m.GetState()), timeout=1.0):  # fmt: skip
+            if reply.ok is None:
+                continue
+            try:
+                answer = _REPLY.decode(reply.ok.payload.to_bytes())
+                if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+                    self._follow_models(str(answer.result.get("models", "")))
+                    return
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """Load these models and import their measurement functions (nothing changes yet)."""
+        try:
+            dep = deploy_bundle(bundle, self.dep)
+            measurement_functions(dep)
+        except (RraError, ImportError, AttributeError, ValueError) as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        self._prepared[bundle.digest] = dep
+        return m.Ok(result={"models": bundle.digest})
+
+    def _follow_models(self, digest: str) -> None:
+        """Run the models the Resolution Engine leader runs (prepared, else loaded now)."""
+        if not digest or digest == self.dep.models:
+            return
+        try:
+            dep = self._prepared.pop(digest, None)
+            if dep is None:
+                dep = deploy_bundle(find_bundle(digest, self.run_dir, self.session, self.keys),
+                                    self.dep)  # fmt: skip
+            self.switch_models(dep)
+        except (RraError, ImportError, AttributeError, ValueError) as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+
+    def switch_models(self, dep: Deployment) -> None:
+        """Compute the new measurements from now on: a new core, subscribers for the new
+        sources, publishers for the new measurements; values of removed ones forgotten."""
+        core = ContextMonitor(dep.package.measurements, measurement_functions(dep),
+                              self._port_types(dep))  # fmt: skip
+        core.refusals = self.core.refusals
+        previous, self.dep, self.core = self.dep.models, dep, core
+        self.limits = {src: self._limit(src) for src in core.sources}
+        self.refresh = _refresh(dep)
+        names = {meas.name for meas in dep.package.measurements.measurements}
+        with self.lock:
+            self.latest = {n: v for n, v in self.latest.items() if n in names}
+        self.sent = {n: v for n, v in self.sent.items() if n in names}
+        self._derived(dep)
+        if self.session is not None:
+            self._declare_publishers(self.session)
+            self._subscribe_sources(self.session)
+        self._prepared.clear()
+        if self.rec is not None:
+            self.rec.reload(dep.models, previous)
+        print(f"rra {self.name}: models {dep.models} (were {previous})", flush=True)
+
+    def _derived(self, dep: Deployment) -> None:
+        """The reachability and availability measurements of the new models."""
+        hosts: dict[str, list[str]] = {h: [] for h in model_hosts(dep, self.host)}
+        for meas in dep.package.measurements.measurements:
+            if meas.reachable is not None:
+                hosts.setdefault(meas.reachable, []).append(meas.name)
+        self.reachability = hosts
+        self.availability = {}
+        for meas in dep.package.measurements.measurements:
+            if meas.available is not None:
+                self.availability.setdefault(meas.available, []).append(meas.name)
+        self.available = {c: v for c, v in self.available.items() if c in self.availability}
+
+
+def _refresh(dep: Deployment) -> dict[str, float]:
+    """How often each measurement is sent again unchanged (a quarter of its max age)."""
+    return {
+        meas.name: REFRESH if meas.max_age_ms is None else meas.max_age_ms / 4000.0
+        for meas in dep.package.measurements.measurements
+    }
 
 
 def _matching(pub: zenoh.Publisher) -> bool:
@@ -591,7 +690,7 @@ def warm_up(argv: list[str]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.monitor --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_setup, parse_engine_args
+    from rra_agent.engines.launch import engine_setup, parse_engine_args, record_dir
 
     args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
@@ -599,7 +698,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     dep, bus, host, name = setup
     try:
-        proc = ContextMonitorProcess(dep, bus, host=host, name=name)
+        proc = ContextMonitorProcess(dep, bus, host=host, name=name, run_dir=record_dir(args))
     except (RraError, ImportError, AttributeError, ValueError) as e:
         print(f"rra monitor: {e}", file=sys.stderr)
         return 2

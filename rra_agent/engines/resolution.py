@@ -73,8 +73,18 @@ from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Executor, Outcome, StepFailed, UnitFailure, spec_for
 from rra_agent.engines.leaders import LeaderWatch
+from rra_agent.engines.models import deploy_bundle, find_bundle
 from rra_agent.engines.reconcile import observe, takeover_plan
+from rra_agent.engines.reload import (
+    changed_decls,
+    commit_hosts,
+    engine_replicas,
+    prepare_all,
+    running_view,
+    system_changed,
+)
 from rra_agent.errors import RraError
+from rra_agent.model_changes import compare
 from rra_agent.models.system import (
     Component,
     ParamValue,
@@ -82,6 +92,9 @@ from rra_agent.models.system import (
     SystemModel,
     parse_endpoint,
 )
+from rra_agent.package.bundle import ModelBundle
+from rra_agent.record.hooks import ResolutionRecorder, open_writer
+from rra_agent.record.run import keep_models, read_models
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
@@ -107,6 +120,7 @@ _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ENGINE_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
+_INJ = m.Codec[m.Injection](m.Injection)
 
 
 class ResolutionEngineProcess(EngineProcess):
@@ -124,9 +138,18 @@ class ResolutionEngineProcess(EngineProcess):
         retry_after: float = 30.0,
         start_timeout: float = 15.0,
         reconcile_period: float = 1.0,
+        record: bool = True,
     ) -> None:
         super().__init__(dep, bus, host=host, name=name)
         self.run_dir = run_dir
+        #: The run's record: the leader's states and the operators' commands.
+        self.rec: ResolutionRecorder | None = None
+        self._recording = record
+        #: The digests of the models before the current ones (``rra reload --undo``), the
+        #: bundles known here, and the models prepared for a reload.
+        self.history: list[str] = []
+        self._bundles: dict[str, ModelBundle] = {dep.models: dep.bundle} if dep.bundle else {}
+        self._prepared: dict[str, Deployment] = {}
         self.retry_after = retry_after
         self.start_timeout = start_timeout
         self.reconcile_period = reconcile_period
@@ -302,6 +325,8 @@ class ResolutionEngineProcess(EngineProcess):
         old = self.mirror
         if old is not None and old.fence == state.fence and state.version < old.version:
             return  # an older publication of the same leader, overtaken
+        self._follow_models(state.models)
+        self.history = list(state.history)
         self.mirror = state
         self.selection, self.cv = frozenset(state.selection), dict(state.cv)
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
@@ -361,6 +386,8 @@ class ResolutionEngineProcess(EngineProcess):
     def on_leadership(self, leading: bool) -> None:
         self.actuator.fence = self.fence if leading else None
         self.actuator.superseded = False
+        if self.rec is not None:
+            self.rec.lead(leading, self.fence)
         if not leading:
             return
         fence = self.fence
@@ -426,6 +453,13 @@ class ResolutionEngineProcess(EngineProcess):
                 "stale_fence",
                 f"selection {msg.seq} from {fence.leader} (epoch {fence.epoch}): "
                 f"a newer Adaptation Engine leader has decided since",
+            )
+            return None
+        if msg.models != self.dep.models:
+            self.refuse(
+                "models",
+                f"selection {msg.seq} from {fence.leader} was decided under models "
+                f"{msg.models or '(none named)'}; this engine runs {self.dep.models}",
             )
             return None
         fm, deployment = self.dep.package.features, self.dep.selection
@@ -711,7 +745,9 @@ class ResolutionEngineProcess(EngineProcess):
             case m.SetParam(node=node, params=params, reset=reset):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
-                return self.set_params(node, params, reset, request)
+                answer = self.set_params(node, params, reset, request)
+                what = {"node": node, "params": params, "reset": reset}
+                return self._recorded("param", what, "", answer)
             case m.GetState():
                 return m.Ok(result=msgspec.to_builtins(self.engine_state()))
             case m.GetParams(node=node):
@@ -721,7 +757,15 @@ class ResolutionEngineProcess(EngineProcess):
             case m.Retry(components=components, operator=who):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
-                return self.retry(list(components), who)
+                return self._recorded("retry", {"components": components}, who,
+                                      self.retry(list(components), who))  # fmt: skip
+            case m.Reload():
+                return self._recorded("reload", {"undo": request.undo, "base": request.base},
+                                      request.operator, self.reload(request))  # fmt: skip
+            case m.GetModels(digest=digest):
+                return self.get_models(digest)
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare(bundle)
         return super().serve(request)
 
     def _no_component(self, node: str) -> m.Err:
@@ -1001,6 +1045,8 @@ class ResolutionEngineProcess(EngineProcess):
             unavailable=sorted(self.unavailable.values(), key=lambda u: (u.component, u.since)),
             degraded=list(self.degraded),
             stamp=self._stamp,
+            models=self.dep.models,
+            history=list(self.history),
         )
 
     def _changed(self) -> None:
@@ -1009,6 +1055,8 @@ class ResolutionEngineProcess(EngineProcess):
         self._stamp = time.time()
         state = self._publish_state()
         self._persist(state)
+        if self.rec is not None and self.leading:
+            self.rec.state(state)
         self.publish_status()
 
     def _publish_state(self) -> m.EngineState:
@@ -1044,6 +1092,8 @@ class ResolutionEngineProcess(EngineProcess):
         state = self._saved_state()
         if state is None:
             return
+        self._follow_models(state.models)  # the models of that state (a reload before)
+        self.history = list(state.history)
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
         self._take_state(state)
@@ -1083,6 +1133,7 @@ class ResolutionEngineProcess(EngineProcess):
             "deployed": self.deployed,
             # What was decided is not all in effect: a plan failed in part.
             "failed": bool(self.degraded),
+            "models": self.dep.models,
         }
 
     def _params_apart(self) -> dict[str, dict[str, dict[str, Any]]]:
@@ -1153,6 +1204,9 @@ class ResolutionEngineProcess(EngineProcess):
 
     # ---- lifecycle ---------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
+        writer = open_writer(self.run_dir if self._recording else None, self.name, self.role,
+                             self.dep, self.host)  # fmt: skip
+        self.rec = ResolutionRecorder(writer) if writer is not None else None
         self.viz = open_logger(self.name)
         log = self.run_dir / "events.jsonl" if self.run_dir else None
         self.sink = EventSink(session, self.keys.events, log)
@@ -1198,7 +1252,9 @@ class ResolutionEngineProcess(EngineProcess):
             session.declare_subscriber(self.keys.events, self._on_event),
             lv.declare_subscriber(self.keys.host_alive_all, self._on_host, history=True),
             self.adaptation,
-        ]
+            *([session.declare_subscriber(self.keys.inject_all, self._on_inject)]
+              if self.rec is not None else []),
+        ]  # fmt: skip
 
     def starting(self) -> None:
         """Learn the current leader's state before the election (a standby that starts)."""
@@ -1282,6 +1338,180 @@ class ResolutionEngineProcess(EngineProcess):
             self.sink.close()
         if self.viz:
             self.viz.close()
+        if self.rec is not None:
+            self.rec.writer.close(end=time.time())
+
+    # ---- the run's record (docs/recording.md) -----------------------------------------------
+    def _recorded(self, kind: str, args: dict[str, Any], who: str, reply: m.Reply) -> m.Reply:
+        """An operator's command in the record, with its outcome (the leader's)."""
+        if self.rec is not None and self.leading:
+            outcome = "ok" if isinstance(reply, m.Ok) else f"{reply.code}: {reply.message}"
+            self.rec.command(kind, msgspec.to_builtins(args), who, outcome)
+        return reply
+
+    def _on_inject(self, sample: zenoh.Sample) -> None:
+        """An injection seen on the bus (a fault, a context change), in the record."""
+        msg = receive(sample.payload, "inject", _INJ)
+        if isinstance(msg, Refused) or self.rec is None or not self.leading:
+            return
+        self.rec.command("inject", {"kind": msg.kind, "target": msg.target,
+                                    "args": msg.args, "stamp": msg.stamp}, "", "")  # fmt: skip
+
+    # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def reload(self, req: m.Reload) -> m.Reply:
+        """Check the new models against what runs, have every replica and host agent
+        prepare them, switch, and apply what they change (main thread: after any plan in
+        progress). Nothing changes when anything refuses."""
+        if not self.leading or not self.deployed:
+            return m.Err(message=f"{self.name} does not lead (or has not deployed yet)",
+                         code="not_leader")  # fmt: skip
+        try:
+            bundle = self._reload_bundle(req)
+            if bundle.digest == self.dep.models:
+                return m.Ok(result={"models": bundle.digest, "previous": bundle.digest,
+                                    "changes": [], "unchanged": True})  # fmt: skip
+            new = self._deploy_models(bundle)
+        except RraError as e:
+            return m.Err(message=str(e), code="invalid")
+        comparison = compare(self.dep, new, self._running())
+        if not comparison.allowed:
+            lines = [str(e).splitlines()[0] for e in comparison.refusals]
+            return m.Err(message="\n".join(lines), code="refused")
+        session: Any = self.session
+        changed = system_changed(self.dep, new)
+        hosts = [h for h in self.hosts if self.reachable(h)] if changed else []
+        replicas = [r for r in engine_replicas(session, self.keys) if r != self.name]
+        refused, silent = prepare_all(
+            session, self.keys, bundle, self.fence, replicas=replicas, hosts=hosts
+        )
+        silent_hosts = [s for s in silent if s.startswith("host ")]
+        if refused or silent_hosts:
+            commit_hosts(session, self.keys, self.dep.models, self.fence, hosts)
+            why = "; ".join(refused + [f"{s} did not answer" for s in silent_hosts])
+            return m.Err(message=f"not reloaded: {why}", code="refused")
+        return self._commit(new, comparison.changes, req.undo)
+
+    def _reload_bundle(self, req: m.Reload) -> ModelBundle:
+        if req.undo:
+            if not self.history:
+                raise RraError("nothing to undo: no reload since the system started")
+            return self._bundle(self.history[-1])
+        if req.bundle is None:
+            raise RraError("a reload needs the models (or --undo)")
+        bundle = req.bundle.verified()
+        if req.base and req.base != self.dep.models:
+            raise RraError(
+                f"the running models changed since the edit was checked (now {self.dep.models}, "
+                f"checked against {req.base}): run rra reload again"
+            )
+        return bundle
+
+    def _bundle(self, digest: str) -> ModelBundle:
+        if digest in self._bundles:
+            return self._bundles[digest]
+        if self.run_dir is None:
+            raise RraError(f"models {digest} are not kept here")
+        return read_models(self.run_dir, digest)
+
+    def _deploy_models(self, bundle: ModelBundle) -> Deployment:
+        """Load the new models (kept in the run's record first: replicas may read them)."""
+        if self.run_dir is not None:
+            keep_models(self.run_dir, bundle)
+        self._bundles[bundle.digest] = bundle
+        return deploy_bundle(bundle, self.dep)
+
+    def _running(self) -> Any:
+        return running_view(self.executor.running, self.executor.standby, self.selection)
+
+    def _commit(self, new: Deployment, changes: list[str], undo: bool) -> m.Reply:
+        """Switch to ``new``: publish the state naming it (the commit every replica follows),
+        tell the host agents, apply the plan it implies and the new parameter bounds."""
+        old, t0 = self.dep, time.perf_counter()
+        self.switch_models(new)
+        self.history = self.history[:-1] if undo else [*self.history, old.models][-10:]
+        self._changed()
+        session: Any = self.session
+        commit_hosts(session, self.keys, new.models, self.fence,
+                     [h for h in self.hosts if self.reachable(h)])  # fmt: skip
+        outcome = self.converge()
+        failed = self._push_decls(old, new)
+        what = "; ".join(changes) or "nothing the engines use"
+        text = (f"{'undo: ' if undo else ''}models {new.models} (were {old.models}): {what}"
+                + (f"; bounds not applied to {', '.join(failed)}" if failed else ""))  # fmt: skip
+        self._event("reload", text, None, level="warning" if failed else "info")
+        print(f"rra {self.name}: reload: {text}", flush=True)
+        plan = [rec.line() for rec in outcome.records] if outcome is not None else []
+        return m.Ok(result={
+            "models": new.models, "previous": old.models, "changes": changes, "plan": plan,
+            "seconds": time.perf_counter() - t0,
+        })  # fmt: skip
+
+    def _push_decls(self, old: Deployment, new: Deployment) -> list[str]:
+        """New parameter bounds to the running nodes (no restart); the nodes that refused."""
+        from rra_agent.engines.executor import Ctl
+
+        decls = changed_decls(old, new, self.executor.running)
+        if not decls:
+            return []
+        batch = [Ctl(self.executor.running[n], m.SetParams(params={}, decl=d))
+                 for n, d in decls.items()]  # fmt: skip
+        replies = self.actuator.control(batch)
+        for ctl, reply in zip(batch, replies, strict=True):
+            if isinstance(reply, m.Ok):
+                self.executor.running[ctl.spec.name] = msgspec.structs.replace(
+                    ctl.spec, decl={**ctl.spec.decl, **decls[ctl.spec.name]})  # fmt: skip
+        return [c.spec.name for c, r in zip(batch, replies, strict=True) if isinstance(r, m.Err)]
+
+    def switch_models(self, new: Deployment) -> None:
+        """Run ``new`` from now on (a reload, or a standby following its leader)."""
+        previous, self.dep = self.dep.models, new
+        if new.bundle is not None:
+            self._bundles[new.models] = new.bundle
+        fm = new.package.features
+        self.needs = requirements(fm, new.package.runtime)
+        attributes = {name for name, (_, a) in fm.attributes.items() if a.kind == "cv"}
+        self.cv = {k: v for k, v in self.cv.items() if k in attributes}
+        self.effective_cv = {k: v for k, v in self.effective_cv.items() if k in attributes}
+        if hasattr(self, "executor"):
+            self.executor.replacement = new.package.runtime.replacement
+            self.executor.standby_inputs = self.standby_inputs
+            self.actuator.container_of = {
+                c.name: c.container for c in new.configured.components if c.container
+            }
+        self._prepared.clear()
+        if self.rec is not None:
+            self.rec.reload(new.models, previous)
+
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """A standby: load the models a reload brings (nothing changes yet)."""
+        try:
+            self._prepared[bundle.digest] = deploy_bundle(bundle, self.dep)
+        except RraError as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        self._bundles[bundle.digest] = bundle
+        return m.Ok(result={"models": bundle.digest})
+
+    def _follow_models(self, digest: str) -> None:
+        """A standby runs the models its leader runs (prepared, else loaded now)."""
+        if not digest or digest == self.dep.models:
+            return
+        try:
+            new = self._prepared.pop(digest, None)
+            if new is None:
+                bundle = self._bundles.get(digest) or find_bundle(
+                    digest, self.run_dir, self.session, self.keys)  # fmt: skip
+                new = deploy_bundle(bundle, self.dep)
+        except RraError as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+            return
+        self.switch_models(new)
+
+    def get_models(self, digest: str) -> m.Reply:
+        try:
+            bundle = self._bundle(digest or self.dep.models)
+        except RraError as e:
+            return m.Err(message=str(e), code="unknown")
+        return m.Ok(result=msgspec.to_builtins(bundle))
 
 
 #: The first word of a failed start that says the node itself crashed (its host agent saw
@@ -1372,6 +1602,7 @@ def main(argv: list[str] | None = None) -> int:
         retry_after=args.retry_after,
         start_timeout=args.start_timeout,
         reconcile_period=args.reconcile_period,
+        record=not args.no_record,
     )
     return engine.run()
 

@@ -60,6 +60,7 @@ class Catalog:
     ) -> None:
         self.system = model.system
         self.host = host
+        self.default_host = default_host
         self.path = [str(Path(package_root).resolve())]
         #: Components placed on this host (those without a host run on the first host).
         self.components: dict[str, Component] = {

@@ -120,7 +120,6 @@ _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ENGINE_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
-_INJ = m.Codec[m.Injection](m.Injection)
 
 
 class ResolutionEngineProcess(EngineProcess):
@@ -295,6 +294,8 @@ class ResolutionEngineProcess(EngineProcess):
             self.sink.record(ev)
             if self.viz:
                 self.viz.event(ev)
+        if ev.injection is not None:
+            self._record_injection(ev.injection, ev.operator)
 
     def _on_host(self, sample: zenoh.Sample) -> None:
         """A host agent appeared (or came back) or went away: reconcile soon."""
@@ -1252,9 +1253,7 @@ class ResolutionEngineProcess(EngineProcess):
             session.declare_subscriber(self.keys.events, self._on_event),
             lv.declare_subscriber(self.keys.host_alive_all, self._on_host, history=True),
             self.adaptation,
-            *([session.declare_subscriber(self.keys.inject_all, self._on_inject)]
-              if self.rec is not None else []),
-        ]  # fmt: skip
+        ]
 
     def starting(self) -> None:
         """Learn the current leader's state before the election (a standby that starts)."""
@@ -1349,13 +1348,14 @@ class ResolutionEngineProcess(EngineProcess):
             self.rec.command(kind, msgspec.to_builtins(args), who, outcome)
         return reply
 
-    def _on_inject(self, sample: zenoh.Sample) -> None:
-        """An injection seen on the bus (a fault, a context change), in the record."""
-        msg = receive(sample.payload, "inject", _INJ)
-        if isinstance(msg, Refused) or self.rec is None or not self.leading:
+    def _record_injection(self, msg: m.Inject, operator: str) -> None:
+        """An operator's injection (its ``injection`` event), in the record. The record does
+        not subscribe to the injections themselves: ``rra inject`` refuses a kind no process
+        takes, and a recorder listening would be taken for one."""
+        if self.rec is None or not self.leading:
             return
-        self.rec.command("inject", {"kind": msg.kind, "target": msg.target,
-                                    "args": msg.args, "stamp": msg.stamp}, "", "")  # fmt: skip
+        args = {"kind": msg.kind, "target": msg.target, "args": msg.args, "stamp": msg.stamp}
+        self.rec.command("inject", args, operator, "")
 
     # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
     def reload(self, req: m.Reload) -> m.Reply:

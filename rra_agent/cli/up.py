@@ -184,7 +184,10 @@ def _run(
     specs = engine_specs(
         dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas
     )
-    catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
+    catalog = Catalog(
+        dep.configured, args.host, package_root=dep.package.root, default_host=True,
+        ros2=dep.package.manifest.ros2,
+    )
     catalog.add_builtins(specs)
     schedule_self(dep.package.manifest.agents.scheduling, "rra up")
     agent = HostAgent(

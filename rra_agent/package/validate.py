@@ -24,6 +24,7 @@ from rra_agent.errors import Location, ModelError
 from rra_agent.models.measurements import PRIMITIVE_TYPES, DataType, Measurement
 from rra_agent.models.resolution import ConnectionRef, ResolutionModel, Transformation
 from rra_agent.models.system import (
+    ROS2_PREFIX,
     Command,
     Component,
     Connection,
@@ -75,6 +76,7 @@ class _Checker:
             if self.implementations:
                 self.check_implementations()
             self.check_measurements()
+        self.check_ros2()
         return _in_file_order(self.errors)
 
     # ---- helpers ------------------------------------------------------------------------
@@ -198,6 +200,8 @@ class _Checker:
                 self.check_implementation((*path, "implementations", name), impl)
 
     def check_implementation(self, path: tuple[PathItem, ...], impl: Implementation) -> None:
+        if isinstance(impl, str) and impl.startswith(ROS2_PREFIX):
+            return  # a ROS 2 executable: parsed by check_ros2 (`ros2 run` needs ROS 2 here)
         if isinstance(impl, str):
             if impl not in self._classes:
                 self._classes[impl] = _node_class_problem(impl, self.pkg.root)
@@ -381,6 +385,17 @@ class _Checker:
                 f"duplicate state transfer into '{name}'",
             )
 
+    # ---- ROS 2 ---------------------------------------------------------------------------
+    def check_ros2(self) -> None:
+        """Types, fields, topics and links of the package's ROS 2 parts
+        (`rra_agent.package.ros2`), each at its place."""
+        from rra_agent.package import ros2
+
+        if self.pkg.manifest.ros2 is None and not ros2.uses_ros2(self.pkg):
+            return
+        for p in ros2.problems(self.pkg):
+            self.error(p.model, p.path, p.message, p.key)
+
     # ---- measurements.yaml --------------------------------------------------------------
     def check_measurements(self) -> None:
         for i, dt in enumerate(self.pkg.measurements.data_types):
@@ -408,6 +423,8 @@ class _Checker:
 
     def check_measurement(self, i: int, m: Measurement) -> None:
         path: tuple[PathItem, ...] = ("measurements", i)
+        if m.ros2_topic is not None:
+            return  # a ROS 2 topic: check_ros2
         if m.reachable is not None:
             hosts = {h.name for h in self.pkg.system.hosts}
             if m.reachable not in hosts:
@@ -497,6 +514,8 @@ def measurement_warnings(pkg: SystemPackage) -> list[ModelWarning]:
     out = []
     for i, m in enumerate(pkg.measurements.measurements):
         for j, src in enumerate(m.inputs):
+            if m.ros2_topic is not None:
+                continue  # a ROS 2 topic: every sample is decoded as its ROS 2 type
             ep = parse_endpoint(src)
             comp = pkg.system.component(ep.component)
             port = comp.port(ep.port) if comp is not None else None

@@ -374,6 +374,9 @@ class Ros2Spec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     domain: int = 0
     distro: str = "jazzy"
     interfaces: str | None = None
+    #: The system package's folder on this host: where an executable's command runs (its
+    #: ``cwd`` is relative to it).
+    folder: str | None = None
     node: str
     namespace: str = "/"
     executable: bool = False

@@ -61,7 +61,9 @@ from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
+from rra_agent.engines.ros2 import TopicSources
 from rra_agent.errors import RraError
+from rra_agent.models.measurements import is_ros2_source
 from rra_agent.models.system import parse_endpoint
 from rra_agent.package.imports import add_package_path
 from rra_agent.viz.rerun_log import Logger, open_logger
@@ -102,7 +104,7 @@ def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
             continue
         dotted = meas.function
         if "." not in dotted:
-            for src in meas.inputs:
+            for src in meas.inputs if meas.ros2_topic is None else ():
                 ep = parse_endpoint(src)
                 comp = pkg.system.component(ep.component)
                 port = comp.port(ep.port) if comp else None
@@ -138,7 +140,11 @@ class ContextMonitorProcess(EngineProcess):
         )
         self.core.refusals.observer = self._refused
         #: The largest sample accepted from each source (its port's limit).
-        self.limits = {src: self._limit(src) for src in self.core.sources}
+        self.limits = {
+            src: self._limit(src) for src in self.core.sources if not is_ros2_source(src)
+        }
+        #: The ROS 2 topics it reads (`rra_agent.engines.ros2.TopicSources`), once declared.
+        self.topics: TopicSources | None = None
         self.published = 0
         self.publishers: dict[str, zenoh.Publisher] = {}
         #: The newest measurement of each name (answered to a restarted Adaptation Engine).
@@ -181,7 +187,7 @@ class ContextMonitorProcess(EngineProcess):
         system = self.dep.package.system
         out = {}
         for meas in self.dep.package.measurements.measurements:
-            for src in meas.inputs:
+            for src in meas.inputs if meas.ros2_topic is None else ():
                 ep = parse_endpoint(src)
                 comp = system.component(ep.component)
                 port = comp.port(ep.port) if comp is not None else None
@@ -217,18 +223,22 @@ class ContextMonitorProcess(EngineProcess):
             if data is None:
                 return  # refused and counted: the newest good sample stays pending
             att = sample.attachment
-            stamp = m.unpack_stamp(att.to_bytes() if att else None) or time.time()
-            with self.lock:
-                self.counters.received += 1
-                if source in self._pending:
-                    self.counters.bump("coalesced")
-                self._pending[source] = (data, stamp)
-                schedule, self._scheduled = not self._scheduled, True
-            if schedule and not self.loop.run_or_post(self._process):
-                with self.lock:
-                    self._scheduled = False
+            self._take(source, data, m.unpack_stamp(att.to_bytes() if att else None) or time.time())
 
         return callback
+
+    def _take(self, source: str, data: Any, stamp: float) -> None:
+        """A good sample of ``source`` (a port's, or a ROS 2 topic's): the newest pending one
+        of its source; computing is scheduled if it is not already."""
+        with self.lock:
+            self.counters.received += 1
+            if source in self._pending:
+                self.counters.bump("coalesced")
+            self._pending[source] = (data, stamp)
+            schedule, self._scheduled = not self._scheduled, True
+        if schedule and not self.loop.run_or_post(self._process):
+            with self.lock:
+                self._scheduled = False
 
     def _on_latest(self, query: zenoh.Query) -> None:
         with self.lock:
@@ -390,7 +400,16 @@ class ContextMonitorProcess(EngineProcess):
         entities: list[Any] = [
             session.declare_subscriber(self.source_key(src), self._on_sample(src))
             for src in self.core.sources
+            if not is_ros2_source(src)
         ]
+        if self.ros2 is not None:
+            self.topics = TopicSources(
+                self.ros2.node,
+                self.dep.package.measurements.measurements,
+                self._take,
+                self.core.refusals.add,
+            )
+            entities.append(self.topics)
         entities.append(session.declare_queryable(self.keys.ctx_all, self._on_latest))
         if self.reachability:
             self._events = session.declare_publisher(

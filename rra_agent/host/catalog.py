@@ -203,6 +203,7 @@ class Catalog:
             domain=self.ros2.domain,
             distro=self.ros2.distro,
             interfaces=self.interfaces,
+            folder=self.path[0],
             node=node_name(c),
             namespace=node.namespace if node else "/",
             executable=is_ros2_implementation(impl, c),

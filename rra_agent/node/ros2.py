@@ -115,7 +115,11 @@ class Executable:
         assert spec.ros2 is not None
         self.spec = spec
         self.ros = ros = spec.ros2
-        self.run, self.env, self.cwd = resolve_run(spec.implementation)
+        self.run, self.env, cwd = resolve_run(spec.implementation)
+        #: Where it runs: the package folder (its command's ``cwd`` is relative to it).
+        self.cwd = str(Path(ros.folder or ".") / cwd) if cwd else ros.folder
+        #: rra-agent's interpreter, for stand-ins written in Python (the example's).
+        self.env.setdefault("RRA_PYTHON", sys.executable)
         self.target = ros.namespace.rstrip("/") + "/" + ros.node
         self.side = side
         self.router = router

@@ -171,6 +171,8 @@ class _Checker:
         if hosts and comp.host is not None and comp.host not in hosts:
             self.error("system", (*path, "host"), unknown_name("host", comp.host, hosts))
         for j, port in enumerate(comp.ports):
+            if port.ros2_type is not None and port.type == port.ros2_type:
+                continue  # a ROS 2 message type (check_ros2 looks it up)
             if not self.type_known(port.type):
                 self.error("system", (*path, "ports", j, "type"), self.unknown_type(port.type))
         for name, param in comp.parameters.items():
@@ -195,11 +197,15 @@ class _Checker:
         `rra_agent.node.Node` subclass; an external command exists and is executable."""
         for i, comp in enumerate(self.pkg.system.components):
             path: tuple[PathItem, ...] = ("components", i)
-            self.check_implementation((*path, "implementation"), comp.implementation)
+            # a ROS 2 node's command runs in the package folder
+            root = self.pkg.root if comp.ros2 is not None else None
+            self.check_implementation((*path, "implementation"), comp.implementation, root)
             for name, impl in comp.implementations.items():
-                self.check_implementation((*path, "implementations", name), impl)
+                self.check_implementation((*path, "implementations", name), impl, root)
 
-    def check_implementation(self, path: tuple[PathItem, ...], impl: Implementation) -> None:
+    def check_implementation(
+        self, path: tuple[PathItem, ...], impl: Implementation, root: Path | None = None
+    ) -> None:
         if isinstance(impl, str) and impl.startswith(ROS2_PREFIX):
             return  # a ROS 2 executable: parsed by check_ros2 (`ros2 run` needs ROS 2 here)
         if isinstance(impl, str):
@@ -212,7 +218,7 @@ class _Checker:
         if not impl.command:
             self.error("system", (*path, "command"), "an external command needs a program")
             return
-        problem = _command_problem(impl)
+        problem = _command_problem(impl, root)
         if problem:
             self.error("system", (*path, "command", 0), problem)
 
@@ -423,8 +429,10 @@ class _Checker:
 
     def check_measurement(self, i: int, m: Measurement) -> None:
         path: tuple[PathItem, ...] = ("measurements", i)
-        if m.ros2_topic is not None:
-            return  # a ROS 2 topic: check_ros2
+        if m.ros2_topic is not None:  # a ROS 2 topic: its type and field in check_ros2
+            if m.function is not None:
+                self.check_function(path, m, [])
+            return
         if m.reachable is not None:
             hosts = {h.name for h in self.pkg.system.hosts}
             if m.reachable not in hosts:
@@ -640,18 +648,18 @@ def _is_node_class(obj: object) -> bool:
     )
 
 
-def _command_problem(impl: Command) -> str | None:
+def _command_problem(impl: Command, root: Path | None = None) -> str | None:
     """Why an external command's program cannot be run (None when it can): a name is looked
     up on PATH (the implementation's own ``env`` PATH if it sets one); a path is taken
     relative to its ``cwd`` (itself relative to the current folder, as the host agent runs
-    it) and must be an executable file."""
+    it; to ``root``, the package folder, for a ROS 2 node's) and must be an executable file."""
     program = impl.command[0]
     if "/" not in program:
         search = impl.env.get("PATH", os.environ.get("PATH", os.defpath))
         if shutil.which(program, path=search) is None:
             return f"program '{program}' of the external command is not on PATH"
         return None
-    file = Path(impl.cwd or ".") / program
+    file = Path(root or ".") / (impl.cwd or ".") / program
     if not file.exists():
         return f"program '{program}' of the external command does not exist ({file})"
     if not file.is_file() or not os.access(file, os.X_OK):

@@ -194,7 +194,7 @@ def _connections(pkg: SystemPackage) -> Iterator[Problem]:
                           f"{conn.source} -> {conn.target}: '{conn.target}' is a node of "
                           "rra-agent, which receives rra-agent's samples only, not ROS 2 "
                           "messages of ROS 2 node " + sc.name)
-        elif sp.ros2_type and tp.ros2_type and sp.ros2_type != tp.ros2_type:
+        elif sp.ros2_type and tp.ros2_type and sp.ros2_type != tp.ros2_type and sp.type == tp.type:
             yield Problem("system", ("connections", i, "to"),
                           f"ROS 2 type mismatch: '{conn.source}' publishes {sp.ros2_type} but "
                           f"'{conn.target}' expects {tp.ros2_type}")

@@ -173,6 +173,11 @@ class _Checker:
         for j, port in enumerate(comp.ports):
             if port.ros2_type is not None and port.type == port.ros2_type:
                 continue  # a ROS 2 message type (check_ros2 looks it up)
+            if port.ros2_type is not None and "/" in port.type:
+                self.error("system", (*path, "ports", j, "type"),
+                           f"type {port.type} is not the port's ros2_type {port.ros2_type}: a "
+                           "ROS 2 port's type is its ROS 2 type, or a data type")
+                continue
             if not self.type_known(port.type):
                 self.error("system", (*path, "ports", j, "type"), self.unknown_type(port.type))
         for name, param in comp.parameters.items():

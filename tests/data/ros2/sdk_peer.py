@@ -12,6 +12,7 @@ Roles:
   serve            node /sdk_node: set_parameters, get_parameters and change_state servers
   call NODE        call NODE's set_parameters, get_parameters and change_state, print replies
   topic_info NAME  print what its graph knows of topic NAME and of NODE services
+  sub TOPIC TYPE   print the scalar fields of every message received on TOPIC
 """
 
 from __future__ import annotations
@@ -71,6 +72,16 @@ def main() -> None:
             sub = ROS2Subscriber(args[0] if args else "/battery",
                                  "sensor_msgs/msg/BatteryState", got,
                                  node_name="battery_listener", **kw)
+            things.append(sub)
+            out(ready=sub.keyexpr)
+        elif role == "sub":
+            def echo(msg: object) -> None:
+                fields = getattr(msg, "__dataclass_fields__", {})
+                values = {k: getattr(msg, k) for k in fields}
+                out(topic=args[0], msg={k: v for k, v in values.items()
+                                        if isinstance(v, (bool, int, float, str))})
+
+            sub = ROS2Subscriber(args[0], args[1], echo, node_name="sdk_echo", **kw)
             things.append(sub)
             out(ready=sub.keyexpr)
         elif role == "serve":

@@ -366,6 +366,7 @@ def test_view_web_serves_on_loopback_only_and_leaves_nothing(tmp_path, procs):
 
 
 # ---- tools/render_rrd.py ----------------------------------------------------------------------
+@pytest.mark.system
 def test_render_rrd_saves_a_screenshot_of_the_web_viewer(tmp_path, monkeypatch):
     sys.path.insert(0, str(TOOLS))
     try:

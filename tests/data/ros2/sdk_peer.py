@@ -6,7 +6,8 @@ implementation of rmw_zenoh) in a process of its own.
 Each line it prints on stdout is one JSON object; ``{"ready": ...}`` once its endpoints
 are declared. It runs until its stdin closes (the test closes it), then exits cleanly.
 Roles:
-  pub_battery [P]  publish sensor_msgs/BatteryState on /battery every P s (0.02; i/100 %)
+  pub_battery [P [T]]  publish sensor_msgs/BatteryState on topic T (/battery) every P s
+                   (0.02; i/100 %)
   pub_string       publish std_msgs/String on /battery (a wrong type on that topic)
   sub_battery [T]  print every BatteryState received on topic T (/battery)
   serve            node /sdk_node: set_parameters, get_parameters and change_state servers
@@ -46,7 +47,8 @@ def main() -> None:
         if role in ("pub_battery", "pub_string"):
             string = role == "pub_string"
             pub = ROS2Publisher(
-                "/battery", "std_msgs/msg/String" if string else "sensor_msgs/msg/BatteryState",
+                args[1] if len(args) > 1 else "/battery",
+                "std_msgs/msg/String" if string else "sensor_msgs/msg/BatteryState",
                 node_name="battery_node", **kw,
             )
             things.append(pub)

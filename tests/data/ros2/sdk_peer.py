@@ -210,7 +210,8 @@ def topic_info(args: list[str], kw: dict) -> None:
 
     deadline = time.monotonic() + 10
     info = None
-    while info is None and time.monotonic() < deadline:  # its session may still be joining
+    # its session may still be joining, its graph still filling: until it has an endpoint
+    while time.monotonic() < deadline and (info is None or not info.publishers):
         info = get_topic_info(args[0], verbose=True, timeout=0.5, **kw)
     pubs = [p.node_name for p in info.publishers] if info else []
     subs = [s.node_name for s in info.subscribers] if info else []

@@ -272,6 +272,28 @@ def test_a_ros2_node_is_rewired_by_restart_with_its_rra_node_kept(rover, tmp_pat
     assert "sub /planner_eco/cmd [rover_msgs/msg/Command]" in render(st)  # remapped, no relay
 
 
+# ---- hot standby of managed nodes ------------------------------------------------------------
+def test_managed_ros2_nodes_on_hot_standby_switch_without_a_start(rover, tmp_path: Path) -> None:
+    pkg = tmp_path / "ros2_rover"
+    shutil.copytree(ROVER, pkg, ignore=shutil.ignore_patterns("*.scenario.yaml", "__pycache__"))
+    runtime = pkg / "runtime.yaml"
+    text = runtime.read_text().replace("planner_fast: standby", "planner_fast: hot-standby")
+    runtime.write_text(text.replace("planner_eco: standby", "planner_eco: hot-standby"))
+    r = rover(pkg)
+    before = {n["node"]: n["pid"] for n in r.gather()["nodes"]}
+    wait_until(lambda: r.measurement("DrivePlanner") == "planner_fast", 10, "planner_fast")
+    r.set("battery", level=20.0)
+    r.wait(economy, "Economy in effect", 15)
+    wait_until(lambda: r.measurement("DrivePlanner") == "planner_eco", 5, "planner_eco drives")
+    assert r.measurement("DriveSpeed") == pytest.approx(0.25)
+    r.set("battery", level=90.0)
+    r.wait(lambda s: not economy(s), "Performance in effect again", 15)
+    wait_until(lambda: r.measurement("DrivePlanner") == "planner_fast", 5, "planner_fast again")
+    st = r.gather()
+    assert {n["node"]: n["pid"] for n in st["nodes"]} == before  # no start, no restart
+    assert not [e for e in r.events() if e.get("outcome") in ("partial", "failed")]
+
+
 # ---- a Python node's ROS 2 port -----------------------------------------------------------------
 def test_a_python_nodes_ros2_port_is_cdr_on_ros2_and_a_ros2_topic_again(
     rover, peers, tmp_path: Path

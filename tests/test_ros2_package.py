@@ -242,3 +242,43 @@ def test_a_ros2_sample_becomes_a_sample_of_its_source_or_a_counted_refusal() -> 
         ("malformed", "/battery: 7 bytes are not CDR"),
     ]
     assert all(isinstance(r, Refusal) and r.source == "ros2:/battery" for r in refusals)
+
+
+def test_a_started_nodes_first_call_outlasts_a_moment_of_no_server() -> None:
+    """Its services were seen, yet the first call (configure) may reach no server for a
+    moment (seen under load: the deployment failed); tried again within the grace, while any
+    other failure stands at once."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from rra_agent.node.ros2 import Executable
+    from rra_agent.ros2.errors import NoServer, ServiceFailed
+
+    me = SimpleNamespace(_cancel=threading.Event())
+    calls: list[int] = []
+
+    def flaky() -> None:
+        calls.append(1)
+        if len(calls) < 4:
+            raise NoServer("no server for service /p/change_state")
+
+    Executable._first_call(me, flaky, 2.0)  # type: ignore[arg-type]
+    assert len(calls) == 4
+
+    def refused() -> None:
+        calls.append(1)
+        raise ServiceFailed("service /p/change_state answered with an error")
+
+    calls.clear()
+    with pytest.raises(ServiceFailed):
+        Executable._first_call(me, refused, 2.0)  # type: ignore[arg-type]
+    assert len(calls) == 1
+
+    def gone() -> None:
+        raise NoServer("no server for service /p/change_state")
+
+    start = time.monotonic()
+    with pytest.raises(NoServer):
+        Executable._first_call(me, gone, 0.2)  # type: ignore[arg-type]
+    assert time.monotonic() - start < 1.5

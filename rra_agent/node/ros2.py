@@ -53,7 +53,7 @@ from rra_agent.node.core import NodeCore
 from rra_agent.node.ros2mirror import Ros2Side, ros2_token, ros2_topic
 from rra_agent.node.runtime import NodeRuntime
 from rra_agent.ros2 import launch
-from rra_agent.ros2.errors import Ros2Error, ServiceFailed, ServiceTimeout
+from rra_agent.ros2.errors import NoServer, Ros2Error, ServiceFailed, ServiceTimeout
 from rra_agent.ros2.names import mangle
 from rra_agent.ros2.params import LifecycleClient, ParameterClient
 from rra_agent.ros2.relay import Relay
@@ -64,6 +64,8 @@ from rra_agent.ros2.tokens import ADMIN_SPACE
 RESTART_DEADLINE = 1.5
 #: How long a ``Describe`` waits for ``get_parameters`` (then it shows the values it set).
 READBACK_TIMEOUT = 0.5
+#: How long a started node's first call is tried again while it reaches no server, s.
+FIRST_CALL_GRACE = 1.0
 #: Grace of a stopping executable after SIGINT, then SIGKILL (its whole process group).
 STOP_GRACE = 1.5
 
@@ -194,16 +196,28 @@ class Executable:
                 )
         self._spawn(params)
         self._wait_ready(timeout)
-        self._bring_up(active)
+        self._bring_up(active, FIRST_CALL_GRACE)
 
-    def _bring_up(self, active: bool) -> None:
+    def _bring_up(self, active: bool, grace: float = 0.0) -> None:
         if self.lifecycle is None:
             if not active:
                 self.log(f"ROS 2 node {self.target} is not managed: it runs active")
             return
-        self.change("configure")
+        self._first_call(lambda: self.change("configure"), grace)
         if active:
             self.change("activate")
+
+    def _first_call(self, call: Callable[[], None], grace: float) -> None:
+        """The first call to a node that has just come up: its services were seen, but a
+        call may reach no server for a moment yet (routing catching up; seen under load):
+        tried again until ``grace`` s have passed, then the error stands."""
+        deadline = time.monotonic() + grace
+        while True:
+            try:
+                return call()
+            except NoServer:
+                if time.monotonic() >= deadline or self._cancel.wait(0.05):
+                    raise
 
     def _spawn(self, params: Mapping[str, Any]) -> None:
         argv, env = launch.command(

@@ -314,7 +314,7 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         nodes.append({"node": name, **st, "state": state})
     families = ("engine",) if client.restricted else ("node", "host")
     hosts = sorted({*eng.get("hosts", {}), *present})
-    return {
+    status = {
         "engine": engine,
         "nodes": nodes,
         # The model's hosts as the engine sees them (an unreachable one too), and any other.
@@ -323,6 +323,23 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         "stats": process_stats(client, timeout, families=families),
         "context": context(client, timeout) if engine is not None else None,
     }
+    graph = ros2_graph(client, eng, timeout)
+    if graph is not None:
+        status["ros2"] = graph
+    return status
+
+
+def ros2_graph(client: BusClient, eng: dict[str, Any], timeout: float) -> dict[str, Any] | None:
+    """The ROS 2 graph of the system's domain (a package with ``ros2:``, as the engine's
+    status says), from the liveliness tokens alive now, asked from this tool's session:
+    every ROS 2 node, rra-agent's and the robot's, with its endpoints
+    (`rra_agent.ros2.graph.Graph.to_json`)."""
+    ros = eng.get("ros2")
+    if not isinstance(ros, dict) or not isinstance(ros.get("domain"), int):
+        return None
+    from rra_agent.ros2.graph import query_graph
+
+    return query_graph(client.session, ros["domain"], timeout=min(timeout, 1.0)).to_json()
 
 
 def _host_agents(

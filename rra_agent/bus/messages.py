@@ -421,6 +421,30 @@ class PortSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     standby: list[str] = []
 
 
+class Ros2Spec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A node's ROS 2 side (docs/ros2.md), filled in by its host agent from its own copy of
+    the model: the system's ROS domain and distribution, the package's interface files on
+    this host, the node's ROS 2 name, and the ROS 2 type of each ROS 2 port.
+    ``executable``: the implementation is a ROS 2 executable (started with ``--ros-args``
+    and driven through its ROS 2 services), not a node of this protocol; ``lifecycle``,
+    ``rewire``, ``timeout``: the component's ``ros2`` section."""
+
+    domain: int = 0
+    distro: str = "jazzy"
+    interfaces: str | None = None
+    #: The system package's folder on this host: where an executable's command runs (its
+    #: ``cwd`` is relative to it).
+    folder: str | None = None
+    node: str
+    namespace: str = "/"
+    executable: bool = False
+    lifecycle: bool = False
+    rewire: Literal["relay", "restart"] = "relay"
+    timeout: Annotated[float, msgspec.Meta(gt=0.0)] = 1.0
+    #: Port -> its ROS 2 message type.
+    ports: dict[str, str] = {}
+
+
 class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
     """Everything a node process needs; passed as JSON in ``RRA_NODE_SPEC``."""
 
@@ -441,6 +465,8 @@ class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     path: list[str] = []
     #: The newest leader fence the host agent has accepted: the node refuses older ones.
     fence: Fence | None = None
+    #: Its ROS 2 side, if it has one (set by the host agent).
+    ros2: Ros2Spec | None = None
 
 
 # ---- host agent control -----------------------------------------------------------------
@@ -753,8 +779,8 @@ def spec_digest(spec: NodeSpec) -> str:
     """What a node is configured to be (implementation, host, parameters, wiring, active),
     as a short hash: equal digests, equal configurations. The state to take over, the fence
     and the import path (each host derives it from its own copy of the package) are not
-    part of it."""
-    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[])
+    part of it, nor its ROS 2 side (each host derives it from its model, like the path)."""
+    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[], ros2=None)
     return _short_hash(fixed)
 
 

@@ -64,6 +64,7 @@ def render(status: dict[str, Any], *, wide: bool = False) -> str:
         _failures_section(status, wide),
         refused_section(status, wide),
         reachable_section(status, wide),
+        ros2_section(status, wide),
     ]
     return "\n\n".join("\n".join(lines) for lines in sections if lines)
 
@@ -272,6 +273,17 @@ def refused_section(status: dict[str, Any], wide: bool = False) -> list[str]:
         )
         lines.append(cut(line, WIDTH, wide))
     return lines
+
+
+def ros2_section(status: dict[str, Any], wide: bool = False) -> list[str]:
+    """The ROS 2 graph of the system's domain (a package with ``ros2:``): each node and its
+    publishers, subscriptions, services and clients, one line each."""
+    graph = status.get("ros2")
+    if not graph:
+        return []
+    from rra_agent.ros2.graph import graph_lines
+
+    return graph_lines(graph, 10_000 if wide else WIDTH)
 
 
 def adaptation_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:

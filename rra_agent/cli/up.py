@@ -252,7 +252,10 @@ def _run(
         dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas,
         record=record,
     )  # fmt: skip
-    catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
+    catalog = Catalog(
+        dep.configured, args.host, package_root=dep.package.root, default_host=True,
+        ros2=dep.package.manifest.ros2,
+    )
     catalog.add_builtins(specs)
     schedule_self(dep.package.manifest.agents.scheduling, "rra up")
     agent = HostAgent(

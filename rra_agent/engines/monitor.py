@@ -77,7 +77,9 @@ from rra_agent.engines.injection import (
 )
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.engines.ros2 import TopicSources
 from rra_agent.errors import RraError
+from rra_agent.models.measurements import is_ros2_source
 from rra_agent.models.system import parse_endpoint
 from rra_agent.package.bundle import ModelBundle
 from rra_agent.package.imports import import_dotted as import_dotted
@@ -130,7 +132,11 @@ class ContextMonitorProcess(EngineProcess):
         )
         self.core.refusals.observer = self._refused
         #: The largest sample accepted from each source (its port's limit).
-        self.limits = {src: self._limit(src) for src in self.core.sources}
+        self.limits = {
+            src: self._limit(src) for src in self.core.sources if not is_ros2_source(src)
+        }
+        #: The ROS 2 topics it reads (`rra_agent.engines.ros2.TopicSources`), once declared.
+        self.topics: TopicSources | None = None
         self.published = 0
         self.publishers: dict[str, zenoh.Publisher] = {}
         #: The newest measurement of each name (answered to a restarted Adaptation Engine).
@@ -140,7 +146,7 @@ class ContextMonitorProcess(EngineProcess):
         self.refresh = _refresh(dep)
         #: Samples waiting to be processed: the newest per source (older ones coalesced),
         #: with its send time and raw bytes.
-        self._pending: dict[str, tuple[Any, float, bytes]] = {}
+        self._pending: dict[str, tuple[Any, float, bytes | None]] = {}
         #: The subscriber of each source (re-declared when a reload changes the sources).
         self._sources: dict[str, zenoh.Subscriber[None]] = {}
         self._source_keys: dict[str, tuple[str, int]] = {}
@@ -184,7 +190,7 @@ class ContextMonitorProcess(EngineProcess):
         system = dep.package.system
         out = {}
         for meas in dep.package.measurements.measurements:
-            for src in meas.inputs:
+            for src in meas.inputs if meas.ros2_topic is None else ():
                 ep = parse_endpoint(src)
                 comp = system.component(ep.component)
                 port = comp.port(ep.port) if comp is not None else None
@@ -222,17 +228,23 @@ class ContextMonitorProcess(EngineProcess):
                 return  # refused and counted: the newest good sample stays pending
             att = sample.attachment
             stamp = m.unpack_stamp(att.to_bytes() if att else None) or time.time()
-            with self.lock:
-                self.counters.received += 1
-                if source in self._pending:
-                    self.counters.bump("coalesced")
-                self._pending[source] = (data, stamp, raw)
-                schedule, self._scheduled = not self._scheduled, True
-            if schedule and not self.loop.run_or_post(self._process):
-                with self.lock:
-                    self._scheduled = False
+            self._take(source, data, stamp, raw)
 
         return callback
+
+    def _take(self, source: str, data: Any, stamp: float, raw: bytes | None = None) -> None:
+        """A good sample of ``source`` (a port's, or a ROS 2 topic's, decoded already: then
+        ``raw`` is None and the record keeps it as msgpack): the newest pending one of its
+        source; computing is scheduled if it is not already."""
+        with self.lock:
+            self.counters.received += 1
+            if source in self._pending:
+                self.counters.bump("coalesced")
+            self._pending[source] = (data, stamp, raw)
+            schedule, self._scheduled = not self._scheduled, True
+        if schedule and not self.loop.run_or_post(self._process):
+            with self.lock:
+                self._scheduled = False
 
     def _on_latest(self, query: zenoh.Query) -> None:
         with self.lock:
@@ -248,7 +260,7 @@ class ContextMonitorProcess(EngineProcess):
         rec = self.rec if self.leading else None
         for source, (data, stamp, raw) in batch.items():
             if rec is not None:
-                rec.sample(source, raw, stamp)
+                rec.sample(source, raw if raw is not None else _plain(data), stamp)
             for c in self.core.on_sample(source, data, stamp):
                 self._emit(
                     m.Measurement(name=c.name, value=c.value, stamp=time.time(), sources=c.sources)
@@ -399,6 +411,14 @@ class ContextMonitorProcess(EngineProcess):
         self._declare_publishers(session)
         self._subscribe_sources(session)
         entities: list[Any] = [session.declare_queryable(self.keys.ctx_all, self._on_latest)]
+        if self.ros2 is not None:
+            self.topics = TopicSources(
+                self.ros2.node,
+                self.dep.package.measurements.measurements,
+                self._take,
+                self.core.refusals.add,
+            )
+            entities.append(self.topics)
         self._events = session.declare_publisher(
             self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
         )
@@ -432,7 +452,11 @@ class ContextMonitorProcess(EngineProcess):
 
     def _subscribe_sources(self, session: zenoh.Session) -> None:
         """A subscriber for every source of the model (those it has already are kept)."""
-        wanted = {src: (self.source_key(src), self.limits[src]) for src in self.core.sources}
+        wanted = {
+            src: (self.source_key(src), self.limits[src])
+            for src in self.core.sources
+            if not is_ros2_source(src)
+        }
         for src in list(self._sources):
             if src not in wanted or self._source_keys.get(src) != wanted[src]:
                 with contextlib.suppress(Exception):
@@ -631,7 +655,7 @@ class ContextMonitorProcess(EngineProcess):
                               self._port_types(dep))  # fmt: skip
         core.refusals = self.core.refusals
         previous, self.dep, self.core = self.dep.models, dep, core
-        self.limits = {src: self._limit(src) for src in core.sources}
+        self.limits = {src: self._limit(src) for src in core.sources if not is_ros2_source(src)}
         self.refresh = _refresh(dep)
         names = {meas.name for meas in dep.package.measurements.measurements}
         with self.lock:
@@ -658,6 +682,15 @@ class ContextMonitorProcess(EngineProcess):
             if meas.available is not None:
                 self.availability.setdefault(meas.available, []).append(meas.name)
         self.available = {c: v for c, v in self.available.items() if c in self.availability}
+
+
+def _plain(data: Any) -> bytes:
+    """A decoded sample as msgpack, for the record (arrays as lists, the rest as text)."""
+    return msgspec.msgpack.encode(data, enc_hook=_plain_value)
+
+
+def _plain_value(o: Any) -> Any:
+    return o.tolist() if hasattr(o, "tolist") else str(o)
 
 
 def _refresh(dep: Deployment) -> dict[str, float]:

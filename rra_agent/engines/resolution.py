@@ -124,6 +124,7 @@ _ENGINE_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 
 class ResolutionEngineProcess(EngineProcess):
     role = NAME
+    ros2_events = True  # its leader puts the events on ROS 2 (`rra_agent.engines.ros2`)
     tick_period = 0.1
 
     def __init__(

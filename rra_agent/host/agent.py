@@ -797,7 +797,8 @@ def run(args) -> int:  # argparse.Namespace
     if args.system and args.system != dep.system:
         raise RraError(f"--system {args.system}: the package's system is {dep.system}")
     catalog = Catalog(
-        dep.configured, args.host, package_root=dep.package.root, default_host=args.hub
+        dep.configured, args.host, package_root=dep.package.root, default_host=args.hub,
+        ros2=dep.package.manifest.ros2,
     )
     schedule_self(dep.package.manifest.agents.scheduling, f"rra agent {args.host}")
     agent = HostAgent(

@@ -107,7 +107,7 @@ def measurement_functions(pkg: SystemPackage) -> dict[str, Callable[..., Any]]:
             continue
         dotted = meas.function
         if "." not in dotted:
-            for src in meas.inputs:
+            for src in meas.inputs if meas.ros2_topic is None else ():
                 ep = parse_endpoint(src)
                 comp = pkg.system.component(ep.component)
                 port = comp.port(ep.port) if comp else None

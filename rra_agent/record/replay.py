@@ -35,7 +35,7 @@ from rra_agent.bus import messages as m
 from rra_agent.core.adaptation import AdaptationEngine, TickResult
 from rra_agent.core.availability import requirements, unavailable_features
 from rra_agent.core.conflicts import ranked_variants
-from rra_agent.core.monitor import ContextMonitor
+from rra_agent.core.monitor import Computed, ContextMonitor
 from rra_agent.core.overrides import OverrideError
 from rra_agent.core.reload import carry_over, engine_for
 from rra_agent.deployment import Deployment, deploy_package
@@ -49,6 +49,7 @@ from rra_agent.models.adaptation import (
     SetAttribute,
 )
 from rra_agent.models.features import FeatureModel
+from rra_agent.models.measurements import is_ros2_source
 from rra_agent.package.bundle import bundle_of
 from rra_agent.package.imports import measurement_functions
 from rra_agent.package.loader import load_package
@@ -516,12 +517,20 @@ def _recomputed(
     out: dict[str, list[tuple[float, Any]]] = {n: [] for n in names}
     last: dict[str, tuple[float, Any]] = {}
     for s in samples:
-        for c in monitor.on_raw(s.source, s.data, s.stamp):
+        for c in _monitor_computes(monitor, s):
             prev = last.get(c.name)
             if prev is None or prev[1] != c.value or s.at - prev[0] >= refresh[c.name]:
                 last[c.name] = (s.at, c.value)
                 out[c.name].append((s.at, c.value))
     return out
+
+
+def _monitor_computes(monitor: ContextMonitor, s: f.Sample) -> list[Computed]:
+    """What the recorded sample yields: a port's raw bytes are decoded as the monitor did;
+    a ROS 2 topic's sample was recorded decoded, as msgpack."""
+    if is_ros2_source(s.source):
+        return monitor.on_sample(s.source, msgspec.msgpack.decode(s.data), s.stamp)
+    return monitor.on_raw(s.source, s.data, s.stamp)
 
 
 def _monitor_samples(run: RecordedRun) -> list[f.Sample]:

@@ -30,6 +30,8 @@ CASES = [
     ("object_storing/radio.scenario.yaml", "radio::adaptive"),
     ("object_storing/max_velocity.scenario.yaml", "max_velocity"),
     ("base_station/link_cut.scenario.yaml", "link_cut::short"),
+    # Its battery is a ROS 2 topic: samples the monitor decoded from CDR, recorded decoded.
+    ("ros2_rover/power.scenario.yaml", "power::adaptive"),
 ]
 
 pytestmark = pytest.mark.system

@@ -81,7 +81,25 @@ def model_files(pkg: SystemPackage) -> dict[str, str]:
         name = getattr(pkg.manifest, field)
         if name is not None and (pkg.root / name).is_file():
             names.append(name)
+    names += _interface_files(pkg)
     return {name: name for name in names}
+
+
+#: The ROS 2 interface definitions a package may ship (``rra.yaml``'s ``ros2: {interfaces}``).
+INTERFACE_SUFFIXES = (".msg", ".srv", ".action", ".idl")
+
+
+def _interface_files(pkg: SystemPackage) -> list[str]:
+    """The package's own ROS 2 message definitions: models of its data as much as the YAML."""
+    ros2 = pkg.manifest.ros2
+    if ros2 is None or ros2.interfaces is None or not (pkg.root / ros2.interfaces).is_dir():
+        return []
+    folder = pkg.root / ros2.interfaces
+    return sorted(
+        f"{PurePosixPath(ros2.interfaces) / p.relative_to(folder).as_posix()}"
+        for p in folder.rglob("*")
+        if p.is_file() and p.suffix in INTERFACE_SUFFIXES
+    )
 
 
 def bundle_of(pkg: SystemPackage) -> ModelBundle:

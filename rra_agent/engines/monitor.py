@@ -41,7 +41,6 @@ newest value of each measurement, so a restarted Adaptation Engine resumes from 
 
 from __future__ import annotations
 
-import importlib
 import sys
 import time
 from collections.abc import Callable
@@ -63,6 +62,8 @@ from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hoo
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
+from rra_agent.package.functions import function_path, load_function
+from rra_agent.package.functions import import_dotted as import_dotted
 from rra_agent.package.imports import add_package_path
 from rra_agent.viz.rerun_log import Logger, open_logger
 
@@ -74,22 +75,9 @@ _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 
 
-def import_dotted(dotted: str) -> Any:
-    """``pkg.module.attr`` -> the object (the longest importable module prefix is used)."""
-    parts = dotted.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:i]))
-        except ModuleNotFoundError:
-            continue
-        for attr in parts[i:]:
-            obj = getattr(obj, attr)
-        return obj
-    raise RraError(f"cannot import {dotted!r}")
-
-
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
-    """Measurement name -> its function: a function of the source data type, or a dotted path.
+    """Measurement name -> its function: a function of the source data type, or a dotted path
+    (`rra_agent.package.functions`, as a node evaluating a reflex resolves it).
 
     The package folder is appended to ``sys.path`` (`rra_agent.package.imports`) so a
     package may ship its own functions.
@@ -98,22 +86,15 @@ def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
     add_package_path([pkg.root])
     out = {}
     for meas in pkg.measurements.measurements:
-        if meas.function is None:
-            continue
-        dotted = meas.function
-        if "." not in dotted:
-            for src in meas.inputs:
-                ep = parse_endpoint(src)
-                comp = pkg.system.component(ep.component)
-                port = comp.port(ep.port) if comp else None
-                dt = pkg.measurements.data_type(port.type) if port else None
-                if dt is not None and dotted in dt.functions:
-                    dotted = dt.functions[dotted]
-                    break
-        fn = import_dotted(dotted)
-        if not callable(fn):
-            raise RraError(f"function {dotted!r} of measurement {meas.name} is not callable")
-        out[meas.name] = fn
+        types = []
+        for src in meas.inputs:
+            ep = parse_endpoint(src)
+            comp = pkg.system.component(ep.component)
+            port = comp.port(ep.port) if comp else None
+            types.append(port.type if port else None)
+        dotted = function_path(pkg.measurements, meas, types)
+        if dotted is not None:
+            out[meas.name] = load_function(dotted)
     return out
 
 

@@ -73,6 +73,11 @@ def configure(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="replicas of each engine: a leader and N-1 hot standbys (default 2)",
     )
+    p.add_argument(
+        "--no-reflexes",
+        action="store_true",
+        help="never delegate a planned decision to a node (docs/architecture.md, Reflexes)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     # -- Rerun logging (rra_agent.viz) --
     p.add_argument(
@@ -93,6 +98,7 @@ def engine_specs(
     host: str,
     adaptation: bool,
     replicas: int = 2,
+    reflexes: bool = True,
 ) -> list[m.NodeSpec]:
     """The engines as supervised processes (their command lines are their implementations)."""
     select = ["--select", ",".join(names)] if names else []
@@ -109,6 +115,7 @@ def engine_specs(
             *select,
             "--run-dir",
             str(run_dir),
+            *(["--no-reflexes"] if engine == "resolution" and not reflexes else []),
         ]
         specs += [
             m.NodeSpec(
@@ -182,8 +189,9 @@ def _run(
     recording.attach_blueprint(rerun_config, dep.package)
     recording.export(rerun_config)
     specs = engine_specs(
-        dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas
-    )
+        dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas,
+        reflexes=not args.no_reflexes,
+    )  # fmt: skip
     catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
     catalog.add_builtins(specs)
     schedule_self(dep.package.manifest.agents.scheduling, "rra up")

@@ -47,7 +47,7 @@ class Deployment:
 
     def initial_cv(self) -> dict[str, float]:
         """Continuous Variability values before the first adaptation: what the Adaptation
-        AdaptationEngine starts from (its value, else its lower bound, clamped by active NFRs)."""
+        Engine starts from (its value, else its lower bound, clamped by active NFRs)."""
         pkg = self.package
         if pkg.adaptation is not None:
             from rra_agent.core.adaptation import AdaptationEngine

@@ -192,15 +192,21 @@ def test_an_operator_sees_the_degraded_state_forces_the_camera_and_retries(
         agv.client.close()
 
 
-def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path, request):
-    """Unavailable, then plugged in: the next probe (after the component's cooldown, 2 s)
-    starts it, the engines re-admit it and, in the human zone, switch to it."""
+def agv_with_camera_at(tmp_path: Path) -> tuple[Path, Path]:
+    """A copy of the AGV whose camera is the file ``tmp_path/video0`` (not there yet)."""
     pkg = tmp_path / "agv"
     shutil.copytree(AGV, pkg, ignore=shutil.ignore_patterns("__pycache__"))
     device = tmp_path / "video0"
     edit_yaml(pkg / "system.yaml", lambda d: next(
         c for c in d["components"] if c["name"] == "depth_camera"
     )["parameters"]["device"].update(value=str(device)))  # fmt: skip
+    return pkg, device
+
+
+def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path, request):
+    """Unavailable, then plugged in: the next probe (after the component's cooldown, 2 s)
+    starts it, the engines re-admit it and, in the human zone, switch to it."""
+    pkg, device = agv_with_camera_at(tmp_path)
     agv = Agv(procs, bus, tmp_path / "run", pkg, request.config.getoption("--hostile"))
     try:
         agv.wait(lambda e: e["deployed"] and "Lidar" in e["effective"], "deployment")
@@ -212,5 +218,32 @@ def test_a_probe_readmits_the_camera_once_it_is_plugged_in(procs, bus, tmp_path,
         assert "Lidar" not in eng["effective"] and not eng["degraded"]
         [available] = agv.events("available")
         assert "a probe started it" in available.message
+    finally:
+        agv.client.close()
+
+
+def test_a_probe_that_hangs_does_not_hold_the_adaptation(procs, bus, tmp_path, request):
+    """The camera's driver hangs in its start: its probe waits up to its timeout on a thread
+    of its own while the engines go on adapting (the zone changes back and the speed limit
+    follows while the probe's node is still starting)."""
+    pkg, device = agv_with_camera_at(tmp_path)
+    agv = Agv(procs, bus, tmp_path / "run", pkg, request.config.getoption("--hostile"))
+    try:
+        agv.wait(lambda e: e["deployed"] and "Lidar" in e["effective"], "deployment")
+        set_params(agv.client, "zone_sensor", {"zone": "human"})
+        agv.wait(lambda e: e["unavailable"] and "HumanZone" in e["effective"], "unavailable")
+        device.write_text("hang\n")  # plugged in, but its driver hangs
+
+        def probing(st: dict) -> bool:
+            return any(n["node"] == "depth_camera" and n["state"] == "STARTING"
+                       for n in st["nodes"])  # fmt: skip
+
+        wait_until(lambda: probing(gather(agv.client, timeout=1.0)), 30, "the probe starting")
+        set_params(agv.client, "zone_sensor", {"zone": "normal"})
+        st = agv.wait(
+            lambda e: "NormalZone" in e["effective"] and e["effective_cv"]["MaxSpeed"] == 1.4,
+            "back in the normal zone",
+        )
+        assert probing(st), "the probe ended before the adaptation: it may have waited for it"
     finally:
         agv.client.close()

@@ -99,39 +99,42 @@ def test_whatever_fails_the_nodes_run_as_the_effective_model(
     check_runs_as(ex, goal)
 
 
-def test_what_is_in_effect_when_the_channel_cannot_start():
-    """Channel B's radio driver does not start: Channel B is decided but not in effect,
-    Channel A (still running) is; the rack size, applied, is in effect."""
-    a = ("Static", "ChannelA", "Small", None, 0.4)
-    b = ("Static", "ChannelB", "Large", None, 0.7)
+def from_a_to_b(a: tuple, b: tuple, fail_on: set[tuple[str, str]]):
+    """Deploy ``a``, go to ``b`` with ``fail_on`` failing: (outcome, selection and CV in
+    effect, CV values of ``b`` and of ``a``)."""
     act = FakeActuator()
     ex = Executor(act, K, Replacement(), default_host="local")
     empty = r.SystemModel(system=CONFIGURED.system, hosts=CONFIGURED.hosts)
     assert ex.execute(diff(empty, target(a))).ok
-    act.fail_on = {("start", "radio_driver_b")}
+    act.fail_on = fail_on
     out = ex.execute(diff(target(a), target(b)))
-    assert out.partial
     effective = effective_model(target(a), target(b), out.failed_structure, out.failed_parameters)
     (sel_a, cv_a), (sel_b, cv_b) = selection(a), selection(b)
     sel, cv = in_effect(FM, PKG.runtime, sel_b, sel_a, effective, target(b), cv_b, cv_a)
+    return out, sel, cv, cv_b, cv_a
+
+
+def test_what_is_in_effect_when_the_channel_cannot_start():
+    """Channel B's radio driver does not start: Channel B is decided but not in effect,
+    Channel A (still running) is; the rack size, applied, is in effect."""
+    out, sel, cv, cv_b, _ = from_a_to_b(
+        ("Static", "ChannelA", "Small", None, 0.4),
+        ("Static", "ChannelB", "Large", None, 0.7),
+        {("start", "radio_driver_b")},
+    )
+    assert out.partial
     assert "ChannelA" in sel and "ChannelB" not in sel
     assert "Large" in sel and "Small" not in sel
     assert cv == cv_b  # MaxVel's parameter (local navigation) was set
 
 
 def test_a_parameter_refused_keeps_its_cv_out_of_effect():
-    a = ("Static", "ChannelA", None, None, 0.4)
-    b = ("Static", "ChannelA", None, None, 0.7)
-    act = FakeActuator()
-    ex = Executor(act, K, Replacement(), default_host="local")
-    empty = r.SystemModel(system=CONFIGURED.system, hosts=CONFIGURED.hosts)
-    assert ex.execute(diff(empty, target(a))).ok
-    act.fail_on = {("params", "local_navigation")}
-    out = ex.execute(diff(target(a), target(b)))
+    out, _, cv, _, cv_a = from_a_to_b(
+        ("Static", "ChannelA", None, None, 0.4),
+        ("Static", "ChannelA", None, None, 0.7),
+        {("params", "local_navigation")},
+    )
     assert not out.ok
-    effective = effective_model(target(a), target(b), out.failed_structure, out.failed_parameters)
-    (sel_a, cv_a), (sel_b, cv_b) = selection(a), selection(b)
-    _, cv = in_effect(FM, PKG.runtime, sel_b, sel_a, effective, target(b), cv_b, cv_a)
     assert cv == cv_a
 
 

@@ -27,7 +27,12 @@ Resolution Engine) is the state that must survive. Faults, one row each:
    standby takes over after the lease (not before the budget), the resumed one follows;
 9. a partition: host h2 (the sink's) cut from the hub like a pulled cable for 3 s, with no
    ``reachable:`` measurement in the model: one ``host_unreachable`` and one
-   ``host_reachable`` event, the sink keeps its process.
+   ``host_reachable`` event, the sink keeps its process;
+10. a replacement that cannot start (``filtered``'s class does not exist): Level 7 selects
+    Filtered; its start fails and its swap is undone alone (Direct runs again), the
+    implementation is unavailable and the Adaptation Engine decides Direct again;
+11. forged source samples (a value missing, NaN, inf, 1e9, not msgpack) that would select
+    Filtered if believed: refused and counted by the Context Monitor, no selection changes.
 
 The systems run with the shipped bus configuration (the 2 s lease: the failure-detection
 budget is 1.75 s, `BusConfig.budget_ms`); row 3's stall (1 s) must move no leadership.
@@ -67,6 +72,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -75,7 +81,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _benchutil import median, p99, print_table
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, gather, set_params, wait_until
+from rra_agent.bus.client import (
+    BusClient,
+    NoReply,
+    gather,
+    process_stats,
+    set_params,
+    wait_until,
+)
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.keys import Keys
 from rra_agent.engines.events import read_events
@@ -944,6 +957,111 @@ def partition(sys_: System, _rep: int) -> Sample:
     return s
 
 
+def broken_package(work: Path) -> Path:
+    """The relay system with Filtered's implementation broken: its node cannot start."""
+    pkg = work / "broken-relay"
+    if not pkg.exists():
+        shutil.copytree(PACKAGE, pkg, ignore=shutil.ignore_patterns("__pycache__"))
+        path = pkg / "system.yaml"
+        text = path.read_text()
+        head, _, tail = text.partition("  - name: filtered\n")
+        tail = tail.replace(
+            "implementation: rra_agent.nodes.generic.Relay",
+            "implementation: rra_agent.nodes.generic.NoSuchNode", 1,
+        )
+        path.write_text(head + "  - name: filtered\n" + tail)
+    return pkg
+
+
+class BrokenFiltered(System):
+    """The relay system whose ``filtered`` cannot start."""
+
+    def __init__(self, work: Path, label: str) -> None:
+        super().__init__(work, label, broken_package(work))
+
+
+def cannot_start(sys_: System, _rep: int) -> Sample:
+    """Detected: the adaptation event saying what failed; recovered: Direct decided again
+    (the implementation taken as unavailable)."""
+    sys_.wait(lambda s: len(running(s)) == PROCESSES, "all nine processes running")
+    watch = sys_.watch
+    assert watch is not None
+    t0 = time.time()
+    sys_.set_param("source", {"value": 7.0})
+    failed = until(
+        lambda: watch.adaptation_events(
+            "adaptation", t0, lambda e: e.outcome in ("partial", "rolled_back")
+        ),
+        30.0, "the adaptation that could not start filtered",
+    )  # fmt: skip
+    st = sys_.wait(
+        lambda s: s["engine"]["unavailable"] and "direct" in running(s)
+        and s["engine"]["selection"] == s["engine"]["effective"]
+        and "Direct" in s["engine"]["selection"],
+        "Direct decided again, filtered unavailable",
+    )  # fmt: skip
+    back = until(lambda: direct_again(watch, t0), 10.0, "the selection of Direct again")
+    s = Sample(detected=failed[0].stamp - t0, recovered=back.stamp - t0)
+    s.checks["filtered unavailable"] = [
+        u["component"] for u in st["engine"]["unavailable"]
+    ] == ["filtered"]
+    s.checks["the event says why"] = "filtered" in failed[0].message
+    s.state_ok = sys_.param("sink", "offset") == OFFSET
+    s.restarted = watch.started(t0, time.time())
+    return s
+
+
+def direct_again(watch: Watch, after: float) -> m.Selection | None:
+    """The first selection of Direct after one of Filtered, since ``after``."""
+    with watch.lock:
+        since = [x for x in watch.selections if x.stamp >= after]
+    first = next((i for i, x in enumerate(since) if "Filtered" in x.features), None)
+    if first is None:
+        return None
+    return next((x for x in since[first:] if "Direct" in x.features), None)
+
+
+FORGED = (
+    {"seq": 1},  # the value missing
+    {"seq": 2, "value": float("nan")},
+    {"seq": 3, "value": float("inf")},
+    {"seq": 4, "value": 1e9},  # outside Level's plausible bounds
+)
+
+
+def monitor_refusals(sys_: System) -> int:
+    assert sys_.client is not None
+    stats = process_stats(sys_.client, families=("node",))
+    return max(
+        (sum(r["count"] for r in v.get("refused") or []) for v in stats.values()
+         if v.get("role") == "monitor"),
+        default=0,
+    )  # fmt: skip
+
+
+def forged_samples(sys_: System, _rep: int) -> Sample:
+    """Detected: every forged sample counted by the Context Monitor leader."""
+    sys_.wait(lambda s: len(running(s)) == PROCESSES, "all nine processes running")
+    watch = sys_.watch
+    assert watch is not None and sys_.client is not None
+    before = monitor_refusals(sys_)
+    session = sys_.client.session
+    t0 = time.time()
+    for sample in FORGED:
+        session.put(K.data("source/out"), msgspec.msgpack.encode(sample),
+                    attachment=m.pack_stamp(time.time()))  # fmt: skip
+    session.put(K.data("source/out"), b"\xc1 not msgpack")
+    until(lambda: monitor_refusals(sys_) >= before + len(FORGED) + 1, 10.0,
+          "every forged sample counted")  # fmt: skip
+    s = Sample(detected=time.time() - t0)
+    with watch.lock:
+        filtered = [x for x in watch.selections if x.stamp >= t0 and "Filtered" in x.features]
+    s.checks["no selection of Filtered"] = not filtered
+    s.state_ok = sys_.param("sink", "offset") == OFFSET
+    s.restarted = watch.started(t0, time.time())
+    return s
+
+
 # ---- the rows --------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Row:
@@ -973,6 +1091,9 @@ ROWS = (
         LEASE * 1e3 + 250.0, LEASE * 1e3 + 250.0),
     Row("partition", f"host h2 cut {CUT:g} s", partition, False, LEASE * 1e3 + 500.0, 2000.0,
         TwoHosts),
+    Row("cannot-start", "filtered cannot start", cannot_start, True, 1000.0, 2000.0,
+        BrokenFiltered),
+    Row("forged", "forged samples x5", forged_samples, False, 1000.0, None),
 )  # fmt: skip
 
 
@@ -1133,6 +1254,14 @@ FOOTNOTES = {
     f"event (stamp) - cut, recovered = 'host_reachable' (stamp) - restore; goals: the lease "
     f"+ 500 ms, the routers' retry (<= 1 s) + 1 s; the model declares no reachable: "
     f"measurement",
+    "cannot-start": "the relay system with filtered's class missing; the source's value set "
+    "to 7 (Level > 5: Filtered); detected = the adaptation event that could not start "
+    "filtered (stamp) - set; recovered = the Adaptation Engine's selection of Direct again "
+    "(stamp: filtered taken as unavailable) - set; a fresh system per run (the "
+    "implementation stays unavailable until its probe)",
+    "forged": "a value missing, NaN, inf, 1e9 (outside Level's plausible bounds) and not "
+    "msgpack, put on the source's key from this session; detected = all counted in the "
+    "Context Monitor leader's refusals (polled) - the first put; no selection of Filtered",
 }
 
 

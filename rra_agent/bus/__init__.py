@@ -1,1 +1,2 @@
-"""The bus: Zenoh session configuration, the key-expression layout, wire messages, the Node SDK."""
+"""The bus: Zenoh session configuration and opening, the key-expression layout, wire messages,
+limits and the receive preamble, heartbeats, failure reports, the tools' client library."""

@@ -5,7 +5,7 @@ run by that host's agent (``rra up`` on the first host, ``rra agent`` on the oth
 other process of a host (nodes, engines, tools) is a Zenoh *client* of its own host's router
 over loopback, so traffic between two processes of one host never leaves it; routers link
 host to host (``rra agent --connect tcp/A:7447``). Clients rather than peers: measured with
-60 processes on one host (docs/architecture.md), all up in 1.2 s instead of 5.1 s for a
+60 processes on one host (docs/performance.md), all up in 1.2 s instead of 5.1 s for a
 gossiping peer mesh, one control request to each of the 60 in 8 ms instead of 126 ms, a
 node's session closed in ~10 ms instead of ~1.8 s; the price is one router hop (~40 us).
 
@@ -280,7 +280,7 @@ class BusConfig(FrozenModel, frozen=True):
         c.insert_json5("timestamping/enabled", "true")
         # Zenoh 1.x copies every sample above 3 KiB into a 16 MiB shared-memory pool of the
         # sender's ("transport optimisation"): ~48 MiB PSS of the object-storing system for
-        # samples of ~10 KiB, which it does not make faster (docs/architecture.md).
+        # samples of ~10 KiB, which it does not make faster (docs/performance.md).
         c.insert_json5(SHM_OPTIMIZATION, "false")
         if self.tls is not None:
             for key, value in self.tls.zenoh_settings().items():

@@ -196,9 +196,10 @@ class ZenohActuator:
                 self.deferred.append((spec.host, f"{what} {spec.name}"))
         return out
 
-    def start(self, specs: list[m.NodeSpec]) -> None:
+    def start(self, specs: list[m.NodeSpec], timeout: float | None = None) -> None:
         """Start the nodes at once; `StepFailed` naming those that did not become ready
-        (each stopped again, so no restart loop is left behind); the others run."""
+        within ``timeout`` (default: the actuator's) (each stopped again, so no restart loop
+        is left behind); the others run."""
         specs = self._reachable(specs, "start")
         trace.mark("engine:start", ",".join(s.name for s in specs))
         mark = self._mark()
@@ -225,7 +226,7 @@ class ZenohActuator:
                 failed=lambda evs: next(
                     (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
                 ),
-                timeout=self.start_timeout,
+                timeout=self.start_timeout if timeout is None else timeout,
                 what="start",
             )
         )

@@ -38,6 +38,7 @@ from rra_agent.engines.election import Election
 _REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 _NODE_REQ = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
+_STATE = m.Codec[m.StateMessage](m.StateMessage)
 
 
 class EngineProcess:
@@ -129,6 +130,18 @@ class EngineProcess:
         """Count a refused sample or request and log it (rate-limited)."""
         self.counters.rejected += 1
         self._refusals(f"refused ({kind})", detail)
+
+    def leader_state(self, sample: zenoh.Sample, leaders: Any) -> m.EngineState | None:
+        """The Run-time Resolution Engine's state in ``sample`` if it comes from its live
+        leader (``leaders``: a `LeaderWatch` of that role); else None, counted."""
+        state = receive(sample.payload, "state", _STATE)
+        if isinstance(state, Refused):
+            self.drop(state.code, f"engine state: {state.detail}")
+            return None
+        if leaders is None or not leaders.is_leader(state.fence):
+            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
+            return None
+        return state
 
     def drop(self, kind: str, detail: str) -> None:
         self.counters.dropped += 1

@@ -1,6 +1,6 @@
 """Execute a reconfiguration `Plan` on the running system: what can be applied is applied.
 
-The Run-time Resolution Engine computes a `Plan` (`rra_agent.core.resolution.diff`); this
+The Run-time Resolution Engine computes a `Plan` (`rra_agent.core.plan.diff`); this
 module carries it out through an `Actuator` (host agents and node control endpoints on the
 bus, or a fake in unit tests).
 
@@ -716,24 +716,10 @@ class Executor:
     # ---- actions with their inverses ---------------------------------------------------
     def _start(self, tx: Transaction, specs: list[tuple[NodeSpec, int]]) -> None:
         """Start the nodes at once; a node that does not start fails its unit."""
-        if not specs:
-            return
-        t0 = self.clock()
-        try:
-            self.actuator.start([s for s, _ in specs])
-            failed: dict[str, str] = {}
-        except StepFailed as e:
-            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
-        _record(tx, "start", [s for s, _ in specs], failed, self.clock() - t0)
-        for spec, unit in specs:
-            if spec.name in failed:
-                continue
-            self.running[spec.name] = spec
-            tx.push(unit, f"start {spec.name}", partial(self._unstart, spec))
-        for spec, unit in specs:
-            if spec.name in failed:
-                why = failed[spec.name]
-                tx.fail(unit, f"start {spec.name}: {why}", {spec.name: why})
+        self._batch(tx, "start", specs, self.actuator.start, self._started, self._unstart)
+
+    def _started(self, spec: NodeSpec) -> None:
+        self.running[spec.name] = spec
 
     def _unstart(self, spec: NodeSpec) -> None:
         self.running.pop(spec.name, None)
@@ -745,27 +731,47 @@ class Executor:
         specs: list[tuple[NodeSpec, int]],
         deadlines: Mapping[str, float] | None = None,
     ) -> None:
-        if not specs:
-            return
-        t0 = self.clock()
-        try:
-            self.actuator.stop([s for s, _ in specs], deadlines)
-            failed: dict[str, str] = {}
-        except StepFailed as e:
-            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
-        _record(tx, "stop", [s for s, _ in specs], failed, self.clock() - t0)
-        for spec, unit in specs:
-            if spec.name not in failed:
-                self.running.pop(spec.name, None)
-                tx.push(unit, f"stop {spec.name}", partial(self._unstop, spec))
-        for spec, unit in specs:
-            if spec.name in failed:
-                why = failed[spec.name]
-                tx.fail(unit, f"stop {spec.name}: {why}", {spec.name: why})
+        def stop(nodes: list[NodeSpec]) -> None:
+            self.actuator.stop(nodes, deadlines)
+
+        self._batch(tx, "stop", specs, stop, self._stopped, self._unstop)
+
+    def _stopped(self, spec: NodeSpec) -> None:
+        self.running.pop(spec.name, None)
 
     def _unstop(self, spec: NodeSpec) -> None:
         self.actuator.start([spec])
         self.running[spec.name] = spec
+
+    def _batch(
+        self,
+        tx: Transaction,
+        action: str,
+        specs: list[tuple[NodeSpec, int]],
+        call: Callable[[list[NodeSpec]], None],
+        done: Callable[[NodeSpec], None],
+        undo: Callable[[NodeSpec], None],
+    ) -> None:
+        """Start or stop the nodes at once. Each that made it is ``done`` and leaves its
+        ``undo`` in its unit first; then each that did not fails its unit (undoing the
+        unit's other actions, those of this batch included)."""
+        if not specs:
+            return
+        t0 = self.clock()
+        try:
+            call([s for s, _ in specs])
+            failed: dict[str, str] = {}
+        except StepFailed as e:
+            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
+        _record(tx, action, [s for s, _ in specs], failed, self.clock() - t0)
+        for spec, unit in specs:
+            if spec.name not in failed:
+                done(spec)
+                tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
+        for spec, unit in specs:
+            if spec.name in failed:
+                why = failed[spec.name]
+                tx.fail(unit, f"{action} {spec.name}: {why}", {spec.name: why})
 
     def _control(self, tx: Transaction, action: str, batch: list[Ctl]) -> list[m.Reply]:
         """Send the batch; each successful request updates its node's spec and leaves its

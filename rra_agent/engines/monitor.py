@@ -52,7 +52,7 @@ import zenoh
 from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
-from rra_agent.bus.counters import Refused, data_limit, receive
+from rra_agent.bus.counters import data_limit
 from rra_agent.core.monitor import ContextMonitor
 from rra_agent.core.plan import topic_of
 from rra_agent.core.samples import MALFORMED, Refusal
@@ -272,13 +272,9 @@ class ContextMonitorProcess(EngineProcess):
 
     # ---- availability (failure as context) ------------------------------------------------
     def _on_state(self, sample: zenoh.Sample) -> None:
-        state = receive(sample.payload, "state", _STATE)
-        if isinstance(state, Refused):
-            return self.drop(state.code, f"engine state: {state.detail}")
-        if self.resolution is None or not self.resolution.is_leader(state.fence):
-            self.refuse("state from a non-leader", f"engine state of {state.fence.leader}")
-            return
-        self.loop.post(lambda: self._availability(state.unavailable))
+        state = self.leader_state(sample, self.resolution)
+        if state is not None:
+            self.loop.post(lambda: self._availability(state.unavailable))
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
         """A new value of each availability measurement whose component changed."""

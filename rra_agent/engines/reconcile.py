@@ -67,6 +67,11 @@ class Observed:
     #: Nodes described this round: name -> pid (their live configuration is now known).
     described: dict[str, int] = field(default_factory=dict)
 
+    def forget(self, name: str) -> None:
+        """Leave a node out of this round (a probe's: not the model's to start or stop)."""
+        for table in (self.nodes, self.pending, self.silent, self.states, self.described):
+            table.pop(name, None)
+
 
 def spec_from_info(info: dict[str, Any], template: m.NodeSpec) -> m.NodeSpec:
     """What a node runs with, from its ``Describe`` reply: ``template`` (the spec the model

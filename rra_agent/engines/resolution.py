@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 import time
 from collections.abc import Collection
 from pathlib import Path
@@ -162,6 +163,8 @@ class ResolutionEngineProcess(EngineProcess):
         self.degraded: list[str] = []
         self._retry_at: float | None = None
         self._backoff = RETRY_FIRST
+        #: The implementation a probe is trying now (on its own thread), if any.
+        self._probing: Need | None = None
         self._stamp = time.time()
         self.applied = 0
         self.selection_fence: Term | None = None
@@ -585,8 +588,9 @@ class ResolutionEngineProcess(EngineProcess):
 
     # ---- failure as context: unavailable implementations -----------------------------------
     def _unavailable_components(self, target: SystemModel) -> set[str]:
-        """Components of ``target`` whose implementation there is unavailable."""
-        out = set()
+        """Components of ``target`` whose implementation there is unavailable (or being
+        probed: a plan must not start a node its probe is about to stop)."""
+        out = {self._probing[0]} if self._probing is not None else set()
         for c in target.components:
             need = component_needs(self.dep.configured, c.name, c.implementation)
             if need in self.unavailable:
@@ -663,26 +667,38 @@ class ResolutionEngineProcess(EngineProcess):
         return m.Ok(result={"readmitted": readmitted,
                             "unavailable": sorted(n[0] for n in self.unavailable)})  # fmt: skip
 
-    def _probe(self, need: Need, record: m.Unavailable) -> None:
-        """Try an unavailable implementation: start it inactive, stop it again. Success
-        re-admits it; failure backs the next probe off."""
+    def _probe_spec(self, need: Need) -> m.NodeSpec | None:
+        """The spec a probe starts (inactive), or None when the name is taken now (another
+        implementation of the component runs)."""
         component, key = need
         c = self.dep.configured.component(component)
         if c is None or component in self.executor.running or component in self.executor.standby:
-            return  # it runs (another implementation, or a name taken): not now
+            return None
         impl = c.implementations.get(key, c.implementation) if key else c.implementation
-        c = msgspec.structs.replace(c, implementation=impl)
-        [spec] = self._specs(self.dep.configured, [c])
-        spec = msgspec.structs.replace(spec, active=False)
-        saved, self.actuator.start_timeout = self.actuator.start_timeout, PROBE_TIMEOUT
+        [spec] = self._specs(self.dep.configured, [msgspec.structs.replace(c, implementation=impl)])
+        return msgspec.structs.replace(spec, active=False)
+
+    def _probe(self, need: Need, spec: m.NodeSpec) -> None:
+        """Try an unavailable implementation on a thread of its own (the main loop goes on
+        adapting meanwhile): start it inactive, stop it again; the result goes back to the
+        main loop (`_probed`)."""
         try:
-            self.actuator.start([spec])
+            self.actuator.start([spec], timeout=PROBE_TIMEOUT)
             self.actuator.stop([spec])
             ok, why = True, ""
         except StepFailed as e:
             ok, why = False, str(e)
-        finally:
-            self.actuator.start_timeout = saved
+        except Exception as e:  # the session closing under it at exit
+            ok, why = False, f"{type(e).__name__}: {e}"
+        self.loop.post(lambda: self._probed(need, ok, why))
+
+    def _probed(self, need: Need, ok: bool, why: str) -> None:
+        """A probe's result: success re-admits the implementation; failure backs the next
+        probe off (doubling, up to PROBE_MAX)."""
+        self._probing = None
+        record = self.unavailable.get(need)
+        if record is None:
+            return  # re-admitted meanwhile (an operator): it is tried again anyway
         if ok:
             self._readmit({need}, "a probe started it")
         else:
@@ -809,6 +825,8 @@ class ResolutionEngineProcess(EngineProcess):
             known=known,
         )  # fmt: skip
         observed.unreachable |= cut_off
+        if self._probing is not None:  # the probe's node: its thread starts and stops it
+            observed.forget(self._probing[0])
         self.unreachable = observed.unreachable
         self.observed.update(observed.states)
         candidates = {s.name for s in standby_specs}
@@ -1241,12 +1259,24 @@ class ResolutionEngineProcess(EngineProcess):
         self._report_deferred()
 
     def _probe_due(self) -> None:
-        """Probe one unavailable implementation whose probe is due (one per tick)."""
+        """Start the probe of one unavailable implementation whose probe is due (one at a
+        time, on its own thread)."""
+        if self._probing is not None or not self.deployed:
+            return
         now = time.time()
         due = [(u.probe_at, need) for need, u in self.unavailable.items() if u.probe_at <= now]
-        if due and self.deployed:
-            _, need = min(due)
-            self._probe(need, self.unavailable[need])
+        if not due:
+            return
+        _, need = min(due)
+        spec = self._probe_spec(need)
+        if spec is None:  # its name is taken now: later
+            record = self.unavailable[need]
+            self.unavailable[need] = msgspec.structs.replace(record, probe_at=now + 1.0)
+            return
+        self._probing = need
+        threading.Thread(
+            target=self._probe, args=(need, spec), name=f"probe-{need[0]}", daemon=True
+        ).start()
 
     def _report_deferred(self) -> None:
         """Steps left for unreachable hosts: one event; the reconcile loop applies them when

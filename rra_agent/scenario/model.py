@@ -677,7 +677,7 @@ def _bind_events(
 
 def swap_pairs(system: Any) -> tuple[tuple[str, str], ...]:
     """Ordered pairs of components with the same (non-empty) peers: those the run-time
-    resolution swaps for each other (`rra_agent.core.resolution.diff`'s criterion)."""
+    resolution swaps for each other (`rra_agent.core.plan.diff`'s criterion)."""
     peers = {c.name: peers_of(system, c.name) for c in system.components}
     return tuple(
         (a, b) for a in peers for b in peers if a != b and peers[a] and peers[a] == peers[b]

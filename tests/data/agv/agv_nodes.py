@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from typing import Any
 
 from rra_agent.node import Node
@@ -30,6 +31,9 @@ class DepthCamera(Node):
         device = str(self.ctx.param("device"))
         if not os.path.exists(device):
             raise RuntimeError(f"camera {device} not found")
+        with open(device) as f:
+            if f.read().strip() == "hang":  # a driver that never comes back
+                time.sleep(3600)
         self.seq = 0
 
     def step(self, now: float) -> None:

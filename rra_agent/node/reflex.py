@@ -11,8 +11,12 @@ non-finite and implausible values refused, the value coerced to its type) with t
 resolves it: `rra_agent.package.functions`); nothing executable comes from the bus. When the
 condition holds (`rra_agent.core.reflex.holds`), the reflex fires once: the node does its
 actions as the control requests of the same names would, and reports it (`ReflexFired`);
-the engines confirm it or roll it back. A function that raises, or a value that cannot be
-computed, never fires a reflex: the engines make the switch as before.
+the engines confirm it or roll it back. It fires on a sample whose values *changed* (the
+sample before it gave others), as the Context Monitor publishes a measurement when its value
+changes and a rule runs on a new value: armed while its condition already holds, a reflex
+waits for a change, and the engines decide on the monitor's next publication as before. A
+function that raises, or a value that cannot be computed, never fires a reflex: the engines
+make the switch as before.
 """
 
 from __future__ import annotations
@@ -42,6 +46,8 @@ class Armed:
     condition: Condition
     #: When it fired (wall clock), 0 while armed: a reflex fires once.
     fired: float = 0.0
+    #: The measurement values of the previous sample (None: no sample yet).
+    last: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -103,7 +109,10 @@ class Reflexes:
                 continue
             computed = armed.monitor.on_raw(armed.spec.source, bytes(payload), stamp or 0.0)
             values = {c.name: c.value for c in computed}
-            if holds(armed.condition, values):
+            if len(values) < len(armed.spec.measurements):
+                continue  # not computable from this sample: as if it had not come
+            new, armed.last = armed.last is not None and values != armed.last, values
+            if new and holds(armed.condition, values):
                 out.append(Fire(armed, values, stamp))
         return out
 

@@ -29,6 +29,7 @@ from conftest import System, edit_yaml
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, set_params, wait_until
 from rra_agent.bus.keys import Keys
+from rra_agent.cli.status import render
 
 pytestmark = pytest.mark.system
 
@@ -157,6 +158,8 @@ def test_a_reflex_fires_and_the_engines_confirm_it(system) -> None:
     assert record["actions"]["plant"] == [{"kind": "rewire", "port": "cmd", "keys": [BACKUP]}]
     assert plant(sys_)["reflexes"] == {record["id"]: 0.0}
     assert cmd_keys(sys_) == [MAIN]
+    shown = render(sys_.gather()).splitlines()
+    assert "reflex      Fallback in plant: +Backup, -Main (armed)" in shown
     set_level(sys_, -1.0)
     [event] = wait_until(lambda: events.of("reflex"), 30, "the reflex reported")
     assert (event.outcome, event.node, event.context) == ("ok", "plant", {"Level": -1.0})

@@ -411,8 +411,11 @@ def test_a_function_that_raises_never_fires_and_the_node_goes_on(
     pkg = tmp_path / "pkg"
     shutil.copytree(PKG, pkg)
     meas = pkg / "measurements.yaml"
-    meas.write_text(meas.read_text().replace("reflex_functions.level",
-                                             "reflex_functions.level_but_not_in_the_plant"))
+    meas.write_text(
+        meas.read_text().replace(
+            "reflex_functions.level", "reflex_functions.level_but_not_in_the_plant"
+        )
+    )
     h = _plant(pkg, value=-1.0)
     monkeypatch.setenv("RRA_NODE_SPEC", '{"name": "plant"}')
     assert isinstance(h.request(m.InstallReflex(reflex=_reflex())), m.Ok)
@@ -421,3 +424,19 @@ def test_a_function_that_raises_never_fires_and_the_node_goes_on(
     assert h.fired == [] and len(h.outputs("out")) == 3
     stats = h.request(m.Stats())
     assert isinstance(stats, m.Ok) and stats.result.counters["reflex_errors"] == 3
+
+
+def test_rra_status_lists_the_installed_reflexes_in_100_columns() -> None:
+    from rra_agent.cli.status import WIDTH, reflex_lines
+
+    record = {"rule": "MotorLoss", "nodes": ["vehicle_simulator"], "before": ["Standard"],
+              "features": ["Proploss"], "fired": 0.0}  # fmt: skip
+    assert reflex_lines({}) == []
+    assert reflex_lines({"reflexes": {"installed": [record]}}) == [
+        "reflex      MotorLoss in vehicle_simulator: +Proploss, -Standard (armed)"
+    ]
+    fired = reflex_lines({"reflexes": {"installed": [{**record, "fired": time.time()}]}})
+    assert " ".join(x.strip() for x in fired).endswith("awaiting confirmation)")
+    many = {**record, "nodes": [f"node_with_a_long_name_{i}" for i in range(6)]}
+    lines = reflex_lines({"reflexes": {"installed": [many]}})
+    assert len(lines) > 1 and all(len(x) <= WIDTH for x in lines)

@@ -9,7 +9,12 @@ t = 20 s. Then it prints what happened, measured from what was recorded on the b
 - decision: that measurement -> the Adaptation Engine's selection with Proploss;
 - plan and execution: the Run-time Resolution Engine's own figures for that adaptation;
 - latency: fault -> the simulator's first physics step driven by a Proploss command;
-- altitude lost after the fault, and whether the vehicle stayed airborne.
+- the largest deviation from the hover target after the fault: up (overshoot), down
+  (altitude lost) and sideways (horizontal drift from where it hovered before the fault);
+- the time to settle: from the fault until the vehicle is back within `SETTLE_Z` (5 cm) of
+  the target altitude and `SETTLE_XY` (10 cm) sideways of the hover point, and stays so for
+  `SETTLE_FOR` (1 s); and the same for the altitude alone;
+- whether the vehicle stayed airborne.
 
 `recovery_report` is pure (a scenario `Recording` in, a `RecoveryReport` out) and is reused
 by ``tools/bench_recovery.py``.
@@ -19,14 +24,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
 
 from rra_agent.bus import messages as m
+from rra_agent.cli.common import add_wide_argument
 from rra_agent.errors import RraError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +42,12 @@ SCENARIO = ROOT / "scenarios" / "quadcopter" / "motor_failure.scenario.yaml"
 FAULT = "motor_failure"
 SIM = "vehicle_simulator"
 RECORD = frozenset({f"{SIM}/events", f"{SIM}/state"})
+#: Settled: within this of the target altitude (m) ...
+SETTLE_Z = 0.05
+#: ... and this of the hover point sideways (m) ...
+SETTLE_XY = 0.10
+#: ... for this long (s).
+SETTLE_FOR = 1.0
 
 
 class RecoveryReport(msgspec.Struct, kw_only=True):
@@ -49,7 +63,17 @@ class RecoveryReport(msgspec.Struct, kw_only=True):
     execute: float | None = None
     first_proploss_command: float | None = None
     setpoint: float | None = None
+    #: The largest deviation below the target altitude (m).
     altitude_lost: float | None = None
+    #: The largest deviation above the target altitude (m).
+    overshoot: float | None = None
+    #: The largest horizontal distance from the hover point before the fault (m).
+    drift: float | None = None
+    #: From the fault until settled (`SETTLE_Z`, `SETTLE_XY`, `SETTLE_FOR`); None: never
+    #: within the recording.
+    settled: float | None = None
+    #: The same for the altitude alone (within `SETTLE_Z` for `SETTLE_FOR`).
+    altitude_settled: float | None = None
     min_altitude: float | None = None
     airborne: bool = False
     crash: str = ""
@@ -117,18 +141,56 @@ def recovery_report(rec, *, setpoint: float | None = None) -> RecoveryReport:
     )
     if switch is not None:
         out.first_proploss_command = switch["wall_time"] - t_f
-    states = [d for d in _data(rec, f"{SIM}/state") if isinstance(d.value.get("position"), list)]
-    before = [d.value["position"][2] for d in states if d.stamp < t_f]
-    after = [d.value["position"][2] for d in states if d.stamp >= t_f]
-    out.setpoint = setpoint if setpoint is not None else (before[-1] if before else None)
+    states = [d for d in _data(rec, f"{SIM}/state") if _xyz(d.value.get("position"))]
+    before = [d.value["position"] for d in states if d.stamp < t_f]
+    after = [(d.stamp - t_f, d.value["position"]) for d in states if d.stamp >= t_f]
+    out.setpoint = setpoint if setpoint is not None else (before[-1][2] if before else None)
     if after:
-        out.min_altitude = min(after)
+        out.min_altitude = min(p[2] for _, p in after)
         if out.setpoint is not None:
-            out.altitude_lost = max(0.0, out.setpoint - out.min_altitude)
+            _deviations(out, out.setpoint, before[-1][:2] if before else None, after)
     crash = next((e for e in sim_events if e.get("kind") == "crash"), None)
     out.crash = str(crash.get("detail", "crashed")) if crash else ""
-    out.airborne = crash is None and bool(after) and min(after) > 0.2
+    out.airborne = crash is None and out.min_altitude is not None and out.min_altitude > 0.2
     return out
+
+
+def _xyz(p: object) -> bool:
+    return isinstance(p, list) and len(p) >= 3
+
+
+def _deviations(
+    out: RecoveryReport, z0: float, xy0: list[float] | None, after: list[tuple[float, list]]
+) -> None:
+    """The largest deviations from the target (``z0``, ``xy0``: the hover point) after the
+    fault, and the time to settle; ``after``: (seconds after the fault, position)."""
+    out.altitude_lost = max(0.0, z0 - min(p[2] for _, p in after))
+    out.overshoot = max(0.0, max(p[2] for _, p in after) - z0)
+
+    def sideways(p: list) -> float:
+        return math.hypot(p[0] - xy0[0], p[1] - xy0[1]) if xy0 is not None else 0.0
+
+    out.drift = max(sideways(p) for _, p in after) if xy0 is not None else None
+
+    def level(p: list) -> bool:
+        return abs(p[2] - z0) <= SETTLE_Z
+
+    out.settled = _settled(after, lambda p: level(p) and sideways(p) <= SETTLE_XY)
+    out.altitude_settled = _settled(after, level)
+
+
+def _settled(after: list[tuple[float, list]], calm: Callable[[list], bool]) -> float | None:
+    """The first time from which every position is ``calm`` for `SETTLE_FOR` (None: never
+    within ``after``)."""
+    since: float | None = None
+    for t, p in after:
+        if not calm(p):
+            since = None
+        elif since is None:
+            since = t
+        if since is not None and t - since >= SETTLE_FOR:
+            return since
+    return None
 
 
 def _ms(v: float | None) -> str:
@@ -136,7 +198,14 @@ def _ms(v: float | None) -> str:
 
 
 def render_report(r: RecoveryReport) -> str:
-    lost = "-" if r.altitude_lost is None else f"{r.altitude_lost:.3f} m"
+    def metres(v: float | None) -> str:
+        return "-" if v is None else f"{v:.3f} m"
+
+    def when(v: float | None) -> str:
+        if v is not None:
+            return f"{v:.2f} s"
+        return "never (within the recording)" if r.min_altitude is not None else "-"
+
     verdict = "STAYED AIRBORNE" if r.airborne else f"CRASHED{': ' + r.crash if r.crash else ''}"
     rows = [
         ("detection (fault -> WorkingMotors < 4)", _ms(r.detected)),
@@ -145,7 +214,15 @@ def render_report(r: RecoveryReport) -> str:
         ("execution: switch (activate + rewire)", _ms(r.switch)),
         ("execution: whole plan (+ stop old controller)", _ms(r.execute)),
         ("fault -> first Proploss command applied", _ms(r.first_proploss_command)),
-        ("altitude lost", lost),
+        ("largest deviation up (overshoot)", metres(r.overshoot)),
+        ("largest deviation down (altitude lost)", metres(r.altitude_lost)),
+        ("largest deviation sideways (drift)", metres(r.drift)),
+        (
+            f"settled (+-{SETTLE_Z * 100:g} cm up/down, {SETTLE_XY * 100:g} cm sideways, "
+            f"{SETTLE_FOR:g} s)",
+            when(r.settled),
+        ),
+        (f"altitude settled (+-{SETTLE_Z * 100:g} cm, {SETTLE_FOR:g} s)", when(r.altitude_settled)),
         ("vehicle", verdict),
     ]
     width = max(len(k) for k, _ in rows)
@@ -164,6 +241,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-adaptation", action="store_true", help="the control case: no RRA")
     p.add_argument("--run-dir", help="logs of the run (default: .rra/demo-<time>)")
+    add_wide_argument(p, "the report's tables")
 
 
 def prepare_case(strategy: str, adaptation: bool, out: Path):
@@ -220,7 +298,7 @@ def run(args: argparse.Namespace) -> int:
     print("\nWhat happened after the fault:")
     print(render_report(report))
     print("\nThe scenario's expectations:")
-    print(render_rows([result]))
+    print(render_rows([result], wide=args.wide))
     (run_dir / "report.json").write_bytes(msgspec.json.encode(report))
     if out.exists():
         print(f"\nRecording: {out} (verified). Open it with:\n  rra view {out}")

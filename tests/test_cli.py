@@ -9,6 +9,7 @@ is computed from the corrupted text.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -209,6 +210,44 @@ def corrupt(tmp_path: Path, file: str, old: str, new: str, token: tuple[str, int
 
 @pytest.mark.parametrize(
     ("kind", "file", "old", "new", "token", "fragment"),
+    [c for c in CASES if c[0] in ("unknown-field", "yaml-syntax")],
+    ids=[f"{c[0]}-{c[1]}" for c in CASES if c[0] in ("unknown-field", "yaml-syntax")],
+)
+def test_every_command_prints_a_model_error_as_validate_does(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    kind: str,
+    file: str,
+    old: str,
+    new: str,
+    token: tuple[str, int],
+    fragment: str,
+) -> None:
+    """One format: ``file:line:col: message``, one line, whichever command met the error."""
+    root, prefix = corrupt(tmp_path, file, old, new, token)
+    _, validated, _ = run(["validate", str(root)], capsys)
+    assert validated.startswith(prefix + fragment), validated
+    for command in (["check"], ["resolve"]):
+        rc, out, err = run([*command, str(root)], capsys)
+        assert rc == 1 and out == ""
+        assert err == validated, (command, err)
+
+
+def test_a_rule_error_is_one_line_in_check_as_in_validate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pkg = tmp_path / "os"
+    shutil.copytree(REPO / "scenarios" / "object_storing", pkg)
+    rules = pkg / "adaptation.rra"
+    rules.write_text(rules.read_text() + "\nrule Bad: set_attribute(Nope) with_value(1)\n")
+    _, validated, _ = run(["validate", str(pkg)], capsys)
+    rc, _, err = run(["check", str(pkg)], capsys)
+    assert rc == 1 and err == validated and len(err.splitlines()) == 1, err
+    assert err.startswith(f"{rules}:"), err
+
+
+@pytest.mark.parametrize(
+    ("kind", "file", "old", "new", "token", "fragment"),
     CASES,
     ids=[f"{c[0]}-{c[1]}" for c in CASES],
 )
@@ -330,6 +369,26 @@ def test_resolve_prints_the_configured_model_as_yaml(capsys: pytest.CaptureFixtu
     nav = next(c for c in model["components"] if c["name"] == "navigation")
     assert nav["parameters"]["max_vel"]["value"] == 0.3
     assert {"from": "laser.scan", "to": "navigation.scan"} in model["connections"]
+
+
+@pytest.mark.usefixtures("resolution_engine")
+@pytest.mark.parametrize("fmt", ["yaml", "json"])
+def test_resolve_prints_bounds_in_the_parameters_type(
+    fmt: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An int parameter's bounds are ints (``min: 0``, not ``0.0``), a float's floats."""
+    rc, out, _ = run(["resolve", str(REPO / "scenarios" / "object_storing"), "-f", fmt], capsys)
+    assert rc == 0
+    model = json.loads(out) if fmt == "json" else yaml.safe_load(out)
+    params = [p for c in model["components"] for p in c["parameters"].values()]
+    bounded = [p for p in params if "min" in p or "max" in p]
+    assert {p["type"] for p in bounded} == {"int", "float"}
+    for p in bounded:
+        for bound in ("min", "max"):
+            if bound in p:
+                assert type(p[bound]) is {"int": int, "float": float}[p["type"]], p
+    if fmt == "yaml":
+        assert "      type: int\n" in out and "      min: 0\n" in out and "min: 0.0\n" in out
 
 
 @pytest.mark.usefixtures("resolution_engine")

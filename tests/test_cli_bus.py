@@ -203,15 +203,65 @@ def test_a_refused_tls_handshake(
     assert main(["certs", str(RELAY), "--out", str(other)]) == 0
     router = open_session(hub)
     try:
+        t0 = time.monotonic()
         rc = main(["status", "--certs", str(other / "operator"),
-                   "--bus-config", str(short_timeout(tmp_path)),
                    "--connect", f"tls/127.0.0.1:{port}"])  # fmt: skip
+        elapsed = time.monotonic() - t0
     finally:
         router.close()
     line = one_line(capsys.readouterr().err)
     assert rc == 1
     assert f"something listens at tls/127.0.0.1:{port} but no Zenoh session opens: the TLS " \
-           "handshake was refused" in line, line  # fmt: skip
+           "handshake was refused: the hub's certificate is not signed by the CA of --certs " \
+           f"({other / 'operator' / 'ca.pem'})" in line, line  # fmt: skip
+    # Zenoh would try for its whole connect timeout (10 s); the answer is definite at once.
+    assert elapsed < 2.0, f"{elapsed:.2f} s"  # a generous bound (the probe: ~0.2 s)
+
+
+def test_an_operator_at_a_hub_without_tls_is_told_at_once(
+    certs: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`rra status --certs` at the hub of a system run without certificates (same port, the
+    default tls/ endpoint's): 10.3 s, then "the TLS handshake was refused"; now at once, with
+    the endpoint that works."""
+    port = free_port()
+    router = open_session(BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    try:
+        t0 = time.monotonic()
+        rc = main(["status", "--certs", str(certs / "operator"), "--system", "relay_system",
+                   "--connect", f"tls/127.0.0.1:{port}"])  # fmt: skip
+        elapsed = time.monotonic() - t0
+    finally:
+        router.close()
+    assert rc == 1
+    assert one_line(capsys.readouterr().err) == (
+        f"rra status: tls/127.0.0.1:{port} is a hub without TLS: connect with --connect "
+        f"tcp/127.0.0.1:{port}"
+    )
+    assert elapsed < 2.0, f"{elapsed:.2f} s"  # generous: the probes take ~0.3 s
+
+
+def test_a_tool_without_certificates_at_a_tls_hub_is_told_at_once(
+    certs: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    port = free_port()
+    local = certs / "local"
+    hub = BusConfig(mode="router", listen=[f"tls/127.0.0.1:{port}"], connect=[],
+                    tls=Tls(ca=str(local / "ca.pem"), cert=str(local / "agent.pem"),
+                            key=str(local / "agent.key")))  # fmt: skip
+    router = open_session(hub)
+    try:
+        t0 = time.monotonic()
+        rc = main(["events", "--connect", f"tcp/127.0.0.1:{port}"])
+        elapsed = time.monotonic() - t0
+    finally:
+        router.close()
+    assert rc == 1
+    assert one_line(capsys.readouterr().err) == (
+        f"rra events: tcp/127.0.0.1:{port} is a TLS hub (certificates): give --certs "
+        f"DIR/operator (from `rra certs`) and --connect tls/127.0.0.1:{port}"
+    )
+    assert elapsed < 2.0, f"{elapsed:.2f} s"
 
 
 def test_up_with_a_bad_certificate_names_it(certs: Path, tmp_path: Path) -> None:

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import msgspec
@@ -95,6 +97,31 @@ def test_param_without_system(system, bus, capsys) -> None:
     assert "value = " in out
 
 
+def test_param_of_a_node_that_is_not_running(system, bus, capsys) -> None:
+    """One rule both ways: a node not running now (filtered: Direct is selected) takes a
+    value as the one it will start with, and its read shows what it will start with; both
+    say it is not running; it starts with it. An unknown node is refused at once."""
+    s = system()
+    ep = bus.connect[0]
+    started = time.monotonic()
+    rc, out, err = run(["param", "nosuch", "--connect", ep], capsys)
+    elapsed = time.monotonic() - started
+    assert (rc, out) == (1, "")
+    assert err == ("rra param: no node 'nosuch' in system 'relay_system' (its nodes: direct, "
+                   "filtered, sink, source)\n")  # fmt: skip
+    assert elapsed < 2.0, f"{elapsed:.2f} s"  # generous: the engine knows its model (was 2.2 s)
+    header = "filtered is not running; it will start with:\n"
+    assert run(["param", "filtered", "--connect", ep], capsys)[1:] == (
+        header + "offset = 100.0\n", "")
+    assert run(["param", "filtered", "offset=3", "--connect", ep], capsys)[1] == (
+        header + "offset = 3.0\n")
+    assert run(["param", "filtered", "--connect", ep], capsys)[1] == header + "offset = 3.0\n"
+    s.set_level(9.0)  # Filtered: filtered starts, with the operator's value
+    s.wait(lambda st: s.node(st, "filtered")["state"] == "RUNNING", "filtered running")
+    rc, out, _ = run(["param", "filtered", "--connect", ep], capsys)
+    assert (rc, out) == (0, "offset = 3.0\n")
+
+
 def test_a_busy_machine_still_finds_the_system(system, bus, hog, capsys) -> None:
     """Both cores busy: every ``rra status`` finds the running system (no false negative)."""
     system()
@@ -102,6 +129,53 @@ def test_a_busy_machine_still_finds_the_system(system, bus, hog, capsys) -> None
         rc, out, err = run(["status", "--connect", bus.connect[0]], capsys)
         assert rc == 0, err
         assert "relay_system" in out
+
+
+def watch(ep: str, stdout: int, tmp_path: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "rra_agent", "status", "--watch", "0.2", "--connect", ep],
+        stdout=stdout, stderr=subprocess.STDOUT, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+
+
+def test_watch_writes_no_escape_codes_into_a_pipe(system, bus, tmp_path: Path) -> None:
+    """Into a pipe: the refreshes one after the other, each after a time line; on a terminal
+    (a pseudo-terminal here): the screen cleared before each."""
+    import pty
+    import select
+
+    system()
+    ep = bus.connect[0]
+    out = tmp_path / "watch.out"
+    with out.open("wb") as f:
+        proc = watch(ep, f.fileno(), tmp_path)
+    try:
+        wait_until(lambda: out.read_bytes().count(b"\nsystem ") >= 2, 60, "two refreshes")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+    text = out.read_bytes()
+    assert b"\x1b" not in text, text[:200]
+    assert text.startswith(b"system      relay_system")
+    lines = text.decode().splitlines()
+    assert any(line.startswith("-- ") and line[3:].count(":") == 2 for line in lines)
+    master, slave = pty.openpty()
+    proc = watch(ep, slave, tmp_path)
+    os.close(slave)
+    seen = b""
+    try:
+        def cleared() -> bool:
+            nonlocal seen
+            if select.select([master], [], [], 0.2)[0]:
+                seen += os.read(master, 65536)
+            return seen.count(b"\x1b[2J\x1b[H") >= 2
+
+        wait_until(cleared, 60, "two redraws on the terminal")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+        os.close(master)
 
 
 # ---- rra events -----------------------------------------------------------------------------
@@ -145,6 +219,16 @@ def test_events_shows_swaps_not_cv_updates(system, bus, tmp_path: Path) -> None:
     swap = next(e for e in applied if any(p.startswith("start filtered") for p in e.plan))
     d = swap.durations
     assert d["total"] == pytest.approx(d["decide"] + d["deliver"] + d["plan"] + d["execute"])
+    # The number an event says is the number of plan lines it shows (was "3 step(s)" above
+    # five lines: the plan's steps, not its actions). The deployment says it too.
+    counted = [e for e in s.events() if isinstance(e, m.AdaptationEvent) and e.plan]
+    assert {e.kind for e in counted} >= {"deploy", "adaptation"}
+    for ev in counted:
+        said = re.search(r"(\d+) actions?\b", ev.message)
+        assert said is not None, ev.message
+        shown = format_event(ev).splitlines()
+        actions = [line for line in shown if line.startswith("    - ") and "- note:" not in line]
+        assert int(said[1]) == len(actions), (ev.message, shown)
 
 
 def run_rra_out(*args: str) -> str:
@@ -162,7 +246,7 @@ def applied(stamp: float, features: list[str], *plan: str) -> m.AdaptationEvent:
     return m.AdaptationEvent(
         stamp=stamp,
         kind="adaptation",
-        message=f"applied selection {sorted(features)}, {len(plan)} step(s)",
+        message=f"applied selection {sorted(features)}, {len(plan)} actions",
         outcome="ok",
         plan=list(plan),
     )

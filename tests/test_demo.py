@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from rra_agent.bus import messages as m
-from rra_agent.demo import recovery_report
+from rra_agent.demo import recovery_report, render_report
 from rra_agent.scenario.expectations import Applied, DataSample, Recording
 from rra_agent.viz.blueprint import read_blueprint
 from rra_agent.viz.recording import entity_paths, verify
@@ -67,6 +68,48 @@ def test_report_measures_every_phase_from_the_recording():
     assert round(r.altitude_lost, 3) == 0.05 and r.airborne and not r.crash
 
 
+def test_report_gives_the_largest_deviation_each_way_and_the_time_to_settle():
+    """The report said "altitude lost 0.023 m" of a run whose recording shows a +0.34 m
+    overshoot and ~1 m of horizontal drift: it gives all three, and when it settled."""
+    rec = synthetic(crash=False)
+    t_f = 105.0
+    path = [(0.0, 0.0, 1.9), (0.6, 0.8, 2.34), (0.3, 0.0, 2.1), (0.05, 0.05, 2.03)]
+    path += [(0.05, 0.05, 2.02)] * 150  # within 5 cm / 10 cm from t_f + 0.4 s on
+    rec.data = [d for d in rec.data if d.topic != "vehicle_simulator/state" or d.stamp < t_f]
+    rec.data += [DataSample(t_f + 0.1 * i, "vehicle_simulator/state", {"position": list(p)})
+                 for i, p in enumerate(path)]  # fmt: skip
+    r = recovery_report(rec, setpoint=2.0)
+    assert round(r.overshoot, 3) == 0.34 and round(r.altitude_lost, 3) == 0.1
+    assert round(r.drift, 3) == 1.0
+    assert round(r.settled, 3) == 0.3 and round(r.altitude_settled, 3) == 0.3
+    text = render_report(r)
+    rows = {line[:49].strip(): line[49:].strip() for line in text.splitlines()}
+    assert rows["largest deviation up (overshoot)"] == "0.340 m", text
+    assert rows["largest deviation down (altitude lost)"] == "0.100 m", text
+    assert rows["largest deviation sideways (drift)"] == "1.000 m", text
+    assert rows["settled (+-5 cm up/down, 10 cm sideways, 1 s)"] == "0.30 s", text
+    assert max(len(line) for line in text.splitlines()) <= 100
+
+
+def test_report_of_a_run_that_never_settles():
+    rec = synthetic(crash=False)
+    rec.data.append(DataSample(105.5, "vehicle_simulator/state", {"position": [0, 0, 2.2]}))
+    r = recovery_report(rec, setpoint=2.0)
+    assert r.settled is None and "never (within the recording)" in render_report(r)
+
+
+def test_report_of_a_vehicle_that_holds_its_altitude_but_circles():
+    """What `rra demo` shows: the altitude settles, the vehicle keeps circling ~0.35 m around
+    its hover point (the Proploss controller spins it): settled never, altitude settled."""
+    rec = synthetic(crash=False)
+    rec.data += [DataSample(105.1 + 0.1 * i, "vehicle_simulator/state",
+                            {"position": [0.35 * math.cos(i / 5), 0.35 * math.sin(i / 5), 2.01]})
+                 for i in range(40)]  # fmt: skip
+    r = recovery_report(rec, setpoint=2.0)
+    assert r.settled is None and round(r.altitude_settled, 2) == 0.02  # 1.95 m at 0.01 s
+    assert round(r.drift, 2) == 0.35
+
+
 def test_report_of_a_crash():
     r = recovery_report(synthetic(crash=True), setpoint=2.0)
     assert not r.airborne and r.crash == "hit the floor" and r.min_altitude == 0.03
@@ -98,11 +141,12 @@ def test_rra_demo_prints_the_report_and_writes_a_verifying_recording(tmp_path):
         ("3D", "Vehicle"): {p for p in paths if p.startswith("/world/")},
         ("TextLog", "Adaptation events"): {"/events", "/rules"},
         ("TimeSeries", "Altitude against its target (m)"): {
-            "/vehicle/altitude", "/vehicle/altitude_target"},
+            "/vehicle/altitude", "/vehicle/altitude_target", "/vehicle/injections"},
         ("TimeSeries", "Motor currents (A)"): {"/vehicle/motors/current"},
         ("TimeSeries", "Motor speeds (rad/s)"): {"/vehicle/motors/measured_speed"},
         ("TimeSeries", "WorkingMotors"): {"/context/WorkingMotors"},
-        ("StateTimeline", "Selected Controller"): {"/choice/Controller"},
+        ("StateTimeline", "Selected Controller and faults injected"): {
+            "/choice/Controller", "/injections"},
         ("TimeSeries", "Adaptation phases (ms)"): {p for p in paths if p.startswith("/timing/")},
     }  # fmt: skip
     assert {"/world/vehicle/thrust", "/world/trajectory", "/timing/switch"} <= paths

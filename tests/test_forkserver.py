@@ -400,3 +400,33 @@ def test_a_dead_branch_is_forked_again(tmp_path, monkeypatch):
     finally:
         h.kill_all()
         hub.close()
+
+
+def test_an_idle_branch_is_retired_and_forked_again_at_the_next_start(tmp_path, monkeypatch):
+    """The branch exits once it has had no request for ``RRA_BRANCH_IDLE`` seconds (every
+    page its engines wrote is theirs: kept, it costs its private memory for nothing) and is
+    reaped by the fork server; the next start of such a command forks a new branch, which
+    warms up again, and a process the old one forked runs on meanwhile."""
+    (tmp_path / "mainmod.py").write_text(MAIN_MODULE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    monkeypatch.setenv("RRA_BRANCH_IDLE", "0.5")
+    bus = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"])
+    hub = open_session(bus.host_router(hub=True))
+    logs = tmp_path / "logs"
+    command = [sys.executable, "-m", "mainmod", "ret", "0"]
+    h = LocalHost("h", bus, logs, forked=[command])
+    try:
+        pid = h.spawn(spec("m0", Command(command=command)))
+        assert exits(h, pid) == 0
+        first = int((logs / "m0.log").read_text().split("warmed [", 1)[1].split("]", 1)[0])
+        # It exits, and the fork server reaps it (no zombie is left).
+        wait_until(lambda: not os.path.exists(f"/proc/{first}"), 10, "the idle branch reaped")
+        pid = h.spawn(spec("m1", Command(command=command)))
+        assert exits(h, pid) == 0
+        text = (logs / "m1.log").read_text()
+        second = int(text.split("warmed [", 1)[1].split("]", 1)[0])
+        assert second != first
+        assert h.zygote is not None and parent_of(second) == h.zygote.pid
+    finally:
+        h.kill_all()
+        hub.close()

@@ -61,6 +61,7 @@ class Watch:
 def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
     kw.setdefault("implementation", "rra_agent.nodes.generic.Relay")
     kw.setdefault("params", {"offset": 1.0})
+    kw.setdefault("supervision", Supervision(heartbeat_timeout=1.0, probe_timeout=0.5))
     return m.NodeSpec(
         system=SYSTEM,
         name=name,
@@ -70,7 +71,6 @@ def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
             "in": m.PortSpec(direction="subscribe", type="X", keys=[K.data("src")]),
             "out": m.PortSpec(direction="publish", type="X", keys=[K.data(f"{name}/out")]),
         },
-        supervision=Supervision(heartbeat_timeout=1.0, probe_timeout=0.5),
         **kw,
     )
 
@@ -169,6 +169,27 @@ def test_kill9_is_known_from_the_os_within_20_ms(agent, procs):
     again = wait_until(lambda: watch.state("relay", "RUNNING", n), 15, "relay RUNNING again")
     procs.watch(again.pid)
     assert again.pid != first.pid and again.restarts == 1
+
+
+def test_a_first_crash_restarts_at_once_a_second_waits_its_backoff(agent, procs):
+    """kill -9 of a running node: its first crash in the restart window is restarted at
+    once, not after ``backoff_initial`` (here 30 s, so the old rule cannot pass); the second
+    crash waits the backoff (the node stays in BACKOFF)."""
+    _, client, watch = agent
+    slow = Supervision(heartbeat_timeout=1.0, probe_timeout=0.5, backoff_initial=30.0,
+                       backoff_max=60.0)  # fmt: skip
+    first = start(client, watch, procs, relay_spec(supervision=slow))
+    n = len(watch.states)
+    os.kill(first.pid, signal.SIGKILL)
+    restarted = wait_until(lambda: watch.state("relay", "STARTING", n), 10, "relay STARTING")
+    assert "at once" in restarted.reason, restarted.reason
+    again = wait_until(lambda: watch.state("relay", "RUNNING", n), 15, "relay RUNNING again")
+    procs.watch(again.pid)
+    assert again.pid != first.pid and again.restarts == 1
+    n = len(watch.states)
+    os.kill(again.pid, signal.SIGKILL)
+    wait_until(lambda: watch.state("relay", "BACKOFF", n), 10, "relay BACKOFF")
+    assert watch.state("relay", "STARTING", n) is None  # waits its 30 s
 
 
 def test_frozen_node_is_probed_then_killed_and_replaced(agent, procs):

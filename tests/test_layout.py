@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1] / "rra_agent"
 
 #: Bottom first. A module's floor is that of the longest prefix listed.
 FLOORS: list[tuple[str, ...]] = [
-    ("rra_agent.errors", "rra_agent.trace", "rra_agent._compat"),
+    ("rra_agent.errors", "rra_agent.trace", "rra_agent._compat", "rra_agent.text"),
     ("rra_agent.models", "rra_agent.library"),
     ("rra_agent.dsl",),
     ("rra_agent.package",),

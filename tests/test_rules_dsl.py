@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rra_agent.dsl.rules import MAX_DEPTH, load_rules, parse_rules
-from rra_agent.dsl.uvl import load_uvl
+from rra_agent.dsl.uvl import load_uvl, parse_uvl
 from rra_agent.errors import DslSyntaxError, ErrorGroup, RraError, SemanticError
 from rra_agent.models.adaptation import (
     Activate,
@@ -259,6 +259,44 @@ def test_attribute_names_qualified_bounds_and_ambiguity(fm, meas):
     err = error_of('rule R: if (Latency == "High") activate_feature(Static)', fm, meas)
     assert "attribute Latency is ambiguous: write one of ChannelA.Latency, ChannelB.Latency" in (
         err.headline
+    )
+
+
+ROBOT_UVL = """features
+    Robot {abstract}
+        mandatory
+            Localization {binding 'runtime'}
+                alternative
+                    LidarSlam {Accuracy {kind 'cim', value 0.05, unit 'm'}}
+                    Gnss {Accuracy {kind 'cim', value 2.0, unit 'm'}}
+            Planner {binding 'runtime', Tolerance {kind 'cv', lower 0.1, upper 1.0, unit 'm'}}
+"""
+
+
+def test_an_ambiguous_attribute_to_set_suggests_nothing_that_cannot_be_set():
+    """The first message says what can be written; only CIM attributes of different features
+    may share a name (UVL), and a CIM attribute cannot be set: so it says that, instead of
+    "write one of LidarSlam.Accuracy, ..." and a second error once the user did."""
+    fm = parse_uvl(ROBOT_UVL, "robot.uvl")
+    err = error_of("rule R: set_attribute(Accuracy) with_value(0.5)", fm, None)
+    (message,) = messages(err)
+    assert message == (
+        "t.rra:1:23: attribute Accuracy cannot be set: LidarSlam.Accuracy (CIM), Gnss.Accuracy "
+        "(CIM) (only run-time Continuous Variability (cv) attributes can be set)"
+    )
+    ok = parse("rule R: set_attribute(Tolerance) with_value(0.5)", fm, None)
+    assert ok.items[0].branches[0].actions[0].target.feature == "Planner"
+    # Read, it stays ambiguous among all of them (a CIM attribute can be read).
+    err = error_of("rule R: if (Accuracy > 1) activate_feature(Gnss)", fm, None)
+    assert "write one of LidarSlam.Accuracy, Gnss.Accuracy" in err.headline
+
+
+def test_an_attribute_none_of_whose_owners_can_be_set(fm, meas):
+    err = error_of("rule R: set_attribute(Latency) with_value(1)", fm, meas)
+    (message,) = messages(err)
+    assert message == (
+        "t.rra:1:23: attribute Latency cannot be set: ChannelA.Latency (CIM), ChannelB.Latency "
+        "(CIM) (only run-time Continuous Variability (cv) attributes can be set)"
     )
 
 

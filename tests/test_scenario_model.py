@@ -389,6 +389,15 @@ def judge(text: str, rec: x.Recording = REC) -> x.Outcome:
         ("node b RUNNING during [k, end]", False, "STOPPED at 4.00 s (0.00 s after k)"),
         ("node b RUNNING within 1 s after k", True, "RUNNING at 4.30 s (0.30 s after k)"),
         ("node zz STOPPED always", True, "STOPPED over [0.00, 10.00] s"),
+        # already so at the window's start: said, with whether it ever changed in the window
+        ("node c RUNNING within 1 s after k", True,
+         "RUNNING already, since -1.00 s; never changed in [4.00, 5.00] s"),
+        ("node a RUNNING within 2 s after k", True,
+         "RUNNING already, since -1.00 s; first changed at 4.10 s"),
+        ("node zz STOPPED within 1 s after k", True,
+         "STOPPED already, since the start; never changed in [4.00, 5.00] s"),
+        ("measurement L == 80 within 1 s after 2", True,
+         "80 already, since 1.00 s; never changed in [2.00, 3.00] s"),
         # values: step signals, tolerance, paths, strings
         ("measurement L < 50 within 0.5 s after k", True, "40 at 4.00 s (0.00 s after k)"),
         ("measurement L == 80 during [1, k]", True, "80 over [1.00, 4.00] s"),

@@ -16,6 +16,7 @@ from rra_agent.host.supervisor import (
     StopPolicy,
     Supervisor,
     Transition,
+    backoff,
 )
 from rra_agent.models.system import Supervision
 
@@ -120,16 +121,54 @@ def test_ready_flag_of_the_heartbeat_also_makes_it_running(rig: Rig) -> None:
     assert rig.state() == State.RUNNING
 
 
-def test_exit_reported_by_the_os_restarts_after_backoff(rig: Rig) -> None:
+def test_a_first_crash_restarts_at_once_a_second_waits_the_backoff(rig: Rig) -> None:
     rig.run("n")
     first = rig.pid()
     rig.sup.on_exit(first, -9, 1.0)
-    assert rig.state() == State.BACKOFF
-    assert "status -9" in rig.events[-1].reason
+    # Reported (BACKOFF, with the exit status) and restarted in the same call: no tick.
+    assert [e.state for e in rig.events[-2:]] == [State.BACKOFF, State.STARTING]
+    assert "status -9" in rig.events[-2].reason
+    assert "at once" in rig.events[-1].reason and rig.events[-1].now == 1.0
+    assert rig.state() == State.STARTING and rig.pid() != first
     rig.now = 1.0
-    rig.tick(1.0)
+    rig.sup.on_ready("n", rig.now)
+    second = rig.pid()
+    rig.sup.on_exit(second, -9, rig.now)  # the second crash in the window waits 1 s
+    assert rig.state() == State.BACKOFF and rig.pid() == second
+    rig.tick(0.9)
+    assert rig.state() == State.BACKOFF
+    rig.tick(0.2)
+    assert rig.state() == State.STARTING and rig.pid() != second
+    rig.sup.on_ready("n", rig.now)
+    rig.sup.on_exit(rig.pid(), -9, rig.now)  # a third: the budget (2) is spent
+    assert rig.state() == State.FATAL
+
+
+def test_the_backoff_grows_from_the_second_crash_on() -> None:
+    policy = Supervision(backoff_initial=0.1, backoff_max=0.5)
+    assert [backoff(policy, n, gone=True) for n in range(1, 6)] == [0.0, 0.1, 0.2, 0.4, 0.5]
+    # A node killed (frozen, not ready in time) waits from its first failure on.
+    assert [backoff(policy, n, gone=False) for n in range(1, 4)] == [0.1, 0.2, 0.4]
+
+
+def test_a_crash_loop_still_goes_fatal_and_is_retried_after_the_cooldown(rig: Rig) -> None:
+    """A node that dies as soon as it starts: the first restart at once, then the backoff,
+    then FATAL once the budget is spent; the cool-down restarts it with a fresh budget,
+    whose first crash again restarts at once."""
+    rig.run("n")
+    rig.sup.on_exit(rig.pid(), 1, rig.now)
+    assert rig.state() == State.STARTING  # at once
+    rig.sup.on_exit(rig.pid(), 1, rig.now)  # dies before it is ready
+    assert rig.state() == State.BACKOFF
+    rig.tick(1.1)
     assert rig.state() == State.STARTING
-    assert rig.pid() != first
+    rig.sup.on_exit(rig.pid(), 1, rig.now)
+    assert rig.state() == State.FATAL
+    assert "2 restarts within 10 s" in rig.events[-1].reason
+    rig.tick(30.1)
+    assert rig.state() == State.STARTING and "cool-down" in rig.events[-1].reason
+    rig.sup.on_exit(rig.pid(), 1, rig.now)
+    assert rig.state() == State.STARTING and "at once" in rig.events[-1].reason
 
 
 def test_start_timeout_kills_and_backs_off(rig: Rig) -> None:
@@ -145,9 +184,9 @@ def test_start_timeout_kills_and_backs_off(rig: Rig) -> None:
 
 def test_restart_budget_then_fatal_then_retry_after_cooldown(rig: Rig) -> None:
     rig.run("n")
-    for _ in range(2):
+    for state in (State.STARTING, State.BACKOFF):  # the first crash restarts at once
         rig.sup.on_exit(rig.pid(), 1, rig.now)
-        assert rig.state() == State.BACKOFF
+        assert rig.state() == state
         rig.tick(4.0)
         rig.sup.on_ready("n", rig.now)
     rig.sup.on_exit(rig.pid(), 1, rig.now)
@@ -161,16 +200,17 @@ def test_restart_budget_then_fatal_then_retry_after_cooldown(rig: Rig) -> None:
     assert "cool-down" in rig.events[-1].reason
     rig.sup.on_ready("n", rig.now)
     rig.sup.on_exit(rig.pid(), 1, rig.now)
-    assert rig.state() == State.BACKOFF  # a fresh budget
+    assert rig.state() == State.STARTING  # a fresh budget: its first crash, at once
 
 
 def test_failures_outside_the_window_do_not_count(rig: Rig) -> None:
     rig.run("n")
     for _ in range(5):
         rig.sup.on_exit(rig.pid(), 1, rig.now)
-        assert rig.state() == State.BACKOFF
-        rig.tick(11.0)
+        assert rig.state() == State.STARTING  # each the first in its window: at once
+        assert "at once" in rig.events[-1].reason
         rig.sup.on_ready("n", rig.now)
+        rig.tick(11.0)
     assert rig.state() == State.RUNNING
 
 
@@ -190,7 +230,7 @@ def test_exit_zero_is_final_unless_restart_always(rig: Rig) -> None:
     rig.sup.on_exit(rig.pid("a"), 0, 0.1)
     rig.sup.on_exit(rig.pid("b"), 0, 0.1)
     assert rig.state("a") == State.EXITED
-    assert rig.state("b") == State.BACKOFF
+    assert rig.state("b") == State.STARTING  # restarted at once
 
 
 def test_stale_heartbeat_probe_answered_keeps_the_process(rig: Rig) -> None:
@@ -333,12 +373,15 @@ def test_a_stricter_stop_of_a_stopping_node_shortens_its_wait(rig: Rig) -> None:
 
 def test_only_stop_escalations_ask_for_an_early_tick(rig: Rig) -> None:
     rig.run("n")  # its start deadline was cleared when ready; a backoff waits on the tick
-    rig.sup.on_exit(rig.pid(), 1, 0.0)
+    rig.sup.on_exit(rig.pid(), 1, 0.0)  # restarted at once
+    rig.sup.on_ready("n", 0.0)
+    rig.sup.on_exit(rig.pid(), 1, 0.0)  # the second crash waits its backoff
     assert rig.state() == State.BACKOFF and rig.sup.next_deadline() is None
 
 
 def test_stop_during_backoff_or_fatal(rig: Rig) -> None:
     rig.run("a", "b")
+    rig.sup.on_exit(rig.pid("a"), 1, 0.0)  # restarted at once; its second crash: BACKOFF
     rig.sup.on_exit(rig.pid("a"), 1, 0.0)
     rig.sup.on_exit(rig.pid("b"), 2, 0.0)
     rig.sup.stop("a", 0.1)

@@ -15,6 +15,7 @@ import importlib.util
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -193,7 +194,7 @@ def test_the_events_view_shows_structural_changes_and_hides_cv_updates(tmp_path)
     log.selection(["B"], {"V": 2.0}, t + 3, universe=["A", "B"], fired=["r3"], changed=True)
     for i, sel in enumerate(("['A']", "['A']", "['B']")):
         log.event(m.AdaptationEvent(stamp=t + 1 + i, kind="adaptation",
-                                    message=f"applied selection {sel}, 1 step(s)",
+                                    message=f"applied selection {sel}, 1 action",
                                     durations={"plan": 0.002}))  # fmt: skip
     log.close()
     assert log.path is not None
@@ -315,6 +316,50 @@ def test_view_runs_the_environments_rerun_not_one_on_path(tmp_path, monkeypatch)
         view.viewer_command(rrd, web=False, port=9090, grpc_port=0)
 
 
+def no_display(monkeypatch) -> list[list[str]]:
+    """No display in the environment; os.execve recorded (a viewer never starts)."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(var, raising=False)
+    started: list[list[str]] = []
+    monkeypatch.setattr(view.os, "execve", lambda exe, cmd, env: started.append(cmd))
+    return started
+
+
+def test_view_without_a_display_says_so_and_names_the_way_out(tmp_path, monkeypatch, capsys):
+    rrd = touch(tmp_path / "x.rrd")
+    started = no_display(monkeypatch)
+    assert main(["view", str(rrd)]) == 1
+    assert not started  # not the viewer's own "winit EventLoopError: ..." after it started
+    err = capsys.readouterr().err
+    assert err == (
+        "rra view: no display here ($DISPLAY, $WAYLAND_DISPLAY unset): try `rra view --web` "
+        "(in a browser)\n"
+    )
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # a port no X server has
+        s.bind(("127.0.0.1", 0))
+        gone = s.getsockname()[1] - 6000
+    monkeypatch.setenv("DISPLAY", f"127.0.0.1:{gone}")
+    assert main(["view", str(rrd)]) == 1 and not started
+    assert f"no X server answers at DISPLAY=127.0.0.1:{gone}: try `rra view --web`" in (
+        capsys.readouterr().err
+    )
+    assert main(["view", str(rrd), "--web"]) == 1  # the browser needs no display
+    assert started and "--web-viewer" in started[0]
+
+
+def test_a_display_that_answers_is_used(tmp_path, monkeypatch):
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as x:  # an "X server" on TCP
+        x.bind(("127.0.0.1", 0))
+        x.listen()
+        n = x.getsockname()[1] - 6000
+        assert view.display_problem({"DISPLAY": f"127.0.0.1:{n}.0"}) is None
+    (tmp_path / "wayland-0").touch()
+    wayland = {"WAYLAND_DISPLAY": "wayland-0", "XDG_RUNTIME_DIR": str(tmp_path)}
+    assert view.display_problem(wayland) is None
+    missing = view.display_problem({**wayland, "WAYLAND_DISPLAY": "w-9"})
+    assert "no Wayland display" in (missing or "")
+
+
 def listeners(port: int) -> set[str]:
     """Local addresses (hex, as in /proc/net/tcp) listening on ``port``."""
     out = set()
@@ -366,6 +411,7 @@ def test_view_web_serves_on_loopback_only_and_leaves_nothing(tmp_path, procs):
 
 
 # ---- tools/render_rrd.py ----------------------------------------------------------------------
+@pytest.mark.system
 def test_render_rrd_saves_a_screenshot_of_the_web_viewer(tmp_path, monkeypatch):
     sys.path.insert(0, str(TOOLS))
     try:

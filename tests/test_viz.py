@@ -82,6 +82,21 @@ def test_logger_writes_every_kind_into_a_verified_recording(tmp_path):
     assert "/misc/after_close" not in paths
 
 
+def test_an_injected_fault_is_a_marker_on_the_altitude_plot_a_lane_and_a_line(tmp_path):
+    """The fault had no marker on the timeline: the simulator logs each injection."""
+    _, env = save_env(tmp_path)
+    log = open_logger("sim", env)
+    assert log is not None
+    for i in range(10):
+        log.altitude(2.0, sim_time=i * 0.1, target=2.0)
+    log.injection("break_motor motor=2", sim_time=0.55, altitude=1.98)
+    log.injection("clear_faults", sim_time=0.8)  # no altitude: the lane and the line only
+    assert log.errors == 0
+    log.close()
+    recording.verify(log.path)
+    assert {"/injections", "/vehicle/injections", "/events"} <= recording.entity_paths(log.path)
+
+
 def test_a_logging_failure_is_counted_and_never_raised(tmp_path, capsys):
     _, env = save_env(tmp_path)
     log = open_logger("unit", env)

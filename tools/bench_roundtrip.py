@@ -26,6 +26,11 @@ and ``publisher.matching_status.matching``, then warms up. The modes are measure
 interleaved blocks (raw, floor, sdk, sdk, floor, raw, ...), each block after a few
 unmeasured round trips, so a change of machine load affects all alike.
 
+The pinger here is plain zenoh (the SDK's echo is measured, not a node at both ends):
+``--node-to-node RUNS`` measures instead a node pinging a node, both rra-agent nodes under
+``rra up`` (`tools/bench_peer.py`'s round trip, rra-agent's side; that tool puts dora-rs's
+beside it).
+
 Run: ``.venv/bin/python tools/bench_roundtrip.py [--n N] [--layouts split,same]``. Prints
 median and p99 (µs) per CPU layout and mode; per layout the medians of SDK, raw and floor,
 the ratio SDK / raw with PASS if <= 1.15 (exit status 1 if any layout FAILs), and the SDK's
@@ -76,7 +81,7 @@ sys.path.insert(0, str(ROOT))
 
 import msgspec  # noqa: E402
 import zenoh  # noqa: E402
-from _benchutil import Stats, print_table  # noqa: E402
+from _benchutil import Stats, median, p99, print_table  # noqa: E402
 
 from rra_agent.bus import messages as m  # noqa: E402
 from rra_agent.bus.config import ENV_VAR as BUS_ENV  # noqa: E402
@@ -558,6 +563,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep-logs", action="store_true", help="keep the echoes' logs")
     parser.add_argument("--impl", default=DEFAULT_IMPL, help=f"SDK echo node ({DEFAULT_IMPL})")
     parser.add_argument(
+        "--node-to-node",
+        type=int,
+        metavar="RUNS",
+        default=0,
+        help="instead: an rra node pinging an rra node under rra up, RUNS fresh systems",
+    )
+    parser.add_argument(
         "--echo", nargs=4, metavar=("KIND", "IN", "OUT", "NAME"), help=argparse.SUPPRESS
     )
     args = parser.parse_args(argv)
@@ -565,7 +577,22 @@ def main(argv: list[str] | None = None) -> int:
         return run_echo(*args.echo)
     if args.n < 1 or args.block < 1:
         parser.error("--n and --block must be positive")
+    if args.node_to_node:
+        return node_to_node(args.node_to_node, args.n, args.warmup)
     return bench(args)
+
+
+def node_to_node(runs: int, n: int, warm: int) -> int:
+    """Node to node: `tools/bench_peer.py`'s round trip, rra-agent's side only (a Pinger node
+    and an Echo node of ``tools/peer_nodes.py`` under ``rra up``, a fresh system per run)."""
+    import bench_peer
+
+    samples: list[float] = []
+    for _ in range(runs):
+        samples += bench_peer.roundtrip("rra", n, warm)
+    print(f"node to node (rra up, {runs} runs of {n}): median {median(samples):.1f} µs, "
+          f"p99 {p99(samples):.1f} µs (goal: p99 <= dora's, tools/bench_peer.py)")  # fmt: skip
+    return 0
 
 
 if __name__ == "__main__":

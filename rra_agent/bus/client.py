@@ -20,12 +20,14 @@ import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
+from rra_agent.bus import probe
 from rra_agent.bus.config import (
     START_HINT,
     BusConfig,
     accepts_tcp,
     explain_open_failure,
     no_system,
+    split_endpoint,
 )
 from rra_agent.bus.keys import ROOT, Keys
 from rra_agent.bus.session import NoPeer, open_session
@@ -47,15 +49,53 @@ class NoReply(RraError):
 
 def open_tool_session(bus: BusConfig) -> zenoh.Session:
     """A tool's session with the hub, or an `RraError` in one line: at once when every
-    connect endpoint refuses the connection (nothing listens there), else after Zenoh's
-    connect timeout with what went wrong (TLS identity, not a Zenoh router...)."""
-    if bus.connect and all(accepts_tcp(ep) is False for ep in bus.connect):
+    connect endpoint refuses the connection (nothing listens there); when the hub cannot be
+    this session's (`rra_agent.bus.probe.diagnose`: TLS on one side only, another system's
+    CA...), once a first try of `probe.AFTER` has not linked; else after Zenoh's connect
+    timeout, with what went wrong. A hub that is only slow is tried again for the rest of
+    the connect timeout."""
+    # A TCP connection closed unused costs a Zenoh TLS listener ~0.1 s before its next
+    # accept (measured): a tls/ endpoint is looked at only once the first try failed.
+    plain = all(split_endpoint(ep)[0] == "tcp" for ep in bus.connect)
+    if bus.connect and plain and _nothing_listens(bus):
         raise no_system(bus)
+    started = time.monotonic()
+    first_ms = min(bus.connect_timeout_ms, int(probe.AFTER * 1000))
     try:
-        return open_session(bus, wait_connected=True)
-    except NoPeer:
+        return _open(msgspec.structs.replace(bus, connect_timeout_ms=first_ms), bus)
+    except _NotLinked:
+        pass
+    why = probe.diagnose(bus)
+    if why is not None:
+        raise RraError(why)
+    if not plain and _nothing_listens(bus):
+        raise no_system(bus)
+    left = bus.connect_timeout_ms - int((time.monotonic() - started) * 1000)
+    try:
+        return _open(msgspec.structs.replace(bus, connect_timeout_ms=max(left, 1)), bus)
+    except _NotLinked:
         raise no_system(bus, reachable=any(accepts_tcp(ep) for ep in bus.connect)) from None
+
+
+def _nothing_listens(bus: BusConfig) -> bool:
+    """Every connect endpoint refuses a TCP connection: a definite answer, at once."""
+    return all(accepts_tcp(ep) is False for ep in bus.connect)
+
+
+class _NotLinked(Exception):
+    """No router linked within the connect timeout of the try."""
+
+
+def _open(attempt: BusConfig, bus: BusConfig) -> zenoh.Session:
+    """A session linked to the hub (`_NotLinked` if none links within ``attempt``'s connect
+    timeout; any other failure explained in one line)."""
+    try:
+        return open_session(attempt, wait_connected=True)
+    except NoPeer:
+        raise _NotLinked from None
     except zenoh.ZError as e:
+        if "Unable to connect" in str(e):
+            raise _NotLinked from None
         raise explain_open_failure(e, bus) from None
 
 
@@ -346,15 +386,20 @@ def set_params(
 
 def engine_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[str, Any]:
     """A node's parameters in the Run-time Configured System Model (the engine's state)."""
+    return node_params(client, node, timeout)["params"]
+
+
+def node_params(client: BusClient, node: str, timeout: float = 5.0) -> dict[str, Any]:
+    """``GetParams`` of the Run-time Resolution Engine leader: ``{"node", "state", "params",
+    "overrides"}`` (``state``: ``running``, ``standby`` or ``stopped``, then ``params`` are
+    the values it will start with). `RraError` in one line for a name that is no node of the
+    system (at once: the engine knows its model) or when no engine leads."""
     try:
         wait_for_leader(client, timeout)
-        reply = client.request(client.keys.engine_ctl("resolution"), m.GetState(), timeout)
+        key = client.keys.engine_ctl("resolution")
+        reply = client.request(key, m.GetParams(node=node), timeout)
     except (TimeoutError, NoReply):
         raise RraError(f"no Run-time Resolution Engine leads {client.keys.system!r}") from None
-    if not isinstance(reply, m.Ok):
-        raise RraError(f"{node}: {reply.message}")  # type: ignore[union-attr]
-    state = msgspec.convert(reply.result, m.EngineState)
-    spec = next((s for s in (*state.running, *state.standby) if s.name == node), None)
-    if spec is None:
-        raise RraError(f"no running node {node!r} in system {client.keys.system!r}")
-    return dict(spec.params)
+    if isinstance(reply, m.Err):
+        raise RraError(reply.message if reply.code == "unknown" else f"{node}: {reply.message}")
+    return reply.result  # type: ignore[no-any-return]

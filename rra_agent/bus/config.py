@@ -86,6 +86,11 @@ def _split(endpoint: str) -> tuple[str, str, str]:
     return proto, host.strip("[]"), port
 
 
+def split_endpoint(endpoint: str) -> tuple[str, str, str]:
+    """``tcp/10.0.0.1:7447#opts`` -> ("tcp", "10.0.0.1", "7447"): protocol, host, port."""
+    return _split(endpoint)
+
+
 def is_loopback(endpoint: str) -> bool:
     proto, host, _ = _split(endpoint)
     if proto in ("unixsock-stream", "unixpipe", "shm"):

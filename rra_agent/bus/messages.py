@@ -544,6 +544,16 @@ class GetState(Msg, tag="get_state"):
     """The engine's current `EngineState` (a restarted engine resumes from it)."""
 
 
+class GetParams(Msg, tag="get_params"):
+    """A node's parameters as the Run-time Resolution Engine leader holds them (``rra param
+    NODE``): ``Ok`` with ``{"node", "state", "params", "overrides"}``, ``state`` being
+    ``running``, ``standby`` (started, inactive) or ``stopped``, and ``params`` the values it
+    runs with, or, stopped, the values it will start with (the model's, the CV values', the
+    operators'); ``Err`` ``unknown`` for a name that is no component of the system."""
+
+    node: str
+
+
 class ForceFeatures(Msg, tag="force_features"):
     """An operator forces run-time features of the Adaptation Engine (``rra select``):
     ``on`` or ``off`` until released with ``auto``. The rules cannot change a forced
@@ -564,7 +574,7 @@ class Retry(Msg, tag="retry"):
 
 
 EngineRequest = (
-    Status | Describe | Ping | Stats | SetParam | GetState | ForceFeatures | Retry
+    Status | Describe | Ping | Stats | SetParam | GetState | GetParams | ForceFeatures | Retry
 )
 
 

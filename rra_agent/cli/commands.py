@@ -2,7 +2,8 @@
 
 Each subcommand is a `Command` in `COMMANDS`: a help text, a function adding its arguments
 and a handler returning the exit status. Every `RraError` ends the command with its message
-on stderr and status 1 (no traceback); Ctrl-C ends it quietly with status 130.
+on stderr and status 1 (no traceback), a model or DSL error as one ``file:line:col: message``
+line as ``rra validate`` prints it; Ctrl-C ends it quietly with status 130.
 """
 
 from __future__ import annotations
@@ -16,9 +17,7 @@ from dataclasses import dataclass
 
 from rra_agent import __version__
 from rra_agent.errors import LocatedError, RraError
-from rra_agent.package.loader import (
-    flatten_errors,
-)
+from rra_agent.package.loader import error_line, flatten_errors
 
 
 @dataclass(frozen=True)
@@ -160,9 +159,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except RraError as e:
-        for err in flatten_errors(e):
+        for err in flatten_errors(e):  # one format: `file:line:col: message` (`rra validate`'s)
             located = isinstance(err, LocatedError) and err.location is not None
-            print(str(err) if located else f"rra {args.command}: {err}", file=sys.stderr)
+            print(error_line(err) if located else f"rra {args.command}: {err}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # e.g. `rra resolve PKG | head`: stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -1,11 +1,12 @@
-"""What the ``rra`` commands share: the width they fit, the ``--system`` option."""
+"""What the ``rra`` commands share: the width they fit (``--wide``), the ``--system`` option."""
 
 from __future__ import annotations
 
 import argparse
 
-#: ``rra status`` fits this many columns unless ``--wide`` is given.
-WIDTH = 100
+from rra_agent.text import WIDTH, cut
+
+__all__ = ["WIDTH", "add_system_argument", "add_wide_argument", "cut"]
 
 
 def add_system_argument(p: argparse.ArgumentParser) -> None:
@@ -15,6 +16,7 @@ def add_system_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
-def cut(text: str, width: int, wide: bool) -> str:
-    """``text`` at most ``width`` characters (its end replaced by ``~``) unless ``wide``."""
-    return text if wide or len(text) <= width else text[: width - 1] + "~"
+def add_wide_argument(p: argparse.ArgumentParser, what: str = "tables and banners") -> None:
+    p.add_argument(
+        "--wide", action="store_true", help=f"{what} on long lines, not fitted to {WIDTH} columns"
+    )

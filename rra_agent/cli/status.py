@@ -10,6 +10,7 @@ node-state transitions live (or prints a saved ``events.jsonl`` with ``--log``).
 from __future__ import annotations
 
 import argparse
+import sys
 import textwrap
 import time
 from typing import Any
@@ -268,8 +269,18 @@ def _row(n: dict[str, Any], want: dict[str, Any] | None, st: dict[str, Any], wid
     return line + (f"  {n.get('implementation', '')}" if wide else "")
 
 
+def redraw(*, first: bool) -> None:
+    """Before each ``--watch`` refresh: on a terminal, clear the screen (escape codes); into a
+    pipe or a file, none: a blank line and the time between refreshes."""
+    if sys.stdout.isatty():
+        print("\033[2J\033[H", end="")
+    elif not first:
+        print(f"\n-- {time.strftime('%H:%M:%S')}", flush=True)
+
+
 def run_status(args: argparse.Namespace) -> int:
     with connect_system(bus_from_args(args), args.system) as client:
+        first = True
         while True:
             status = gather(client)
             if not status["hosts"] and status["engine"] is None:
@@ -280,10 +291,11 @@ def run_status(args: argparse.Namespace) -> int:
                 print(msgspec.json.encode(status).decode(), flush=True)
             else:
                 if args.watch:
-                    print("\033[2J\033[H", end="")
+                    redraw(first=first)
                 print(render(status, wide=args.wide), flush=True)
             if not args.watch:
                 return 0
+            first = False
             time.sleep(args.watch)
 
 

@@ -2,7 +2,9 @@
 
 Each argument is a scenario file or a folder (a system package, or any folder: every
 ``*.scenario.yaml`` below it). Every case runs its own system in turn; the table printed at
-the end has one row per expectation: scenario, expectation, outcome, observed value and time.
+the end has one row per expectation: scenario, expectation, outcome, observed value and time,
+in 100 columns (the expectation and what was observed wrapped in their columns; ``--wide``:
+one line per row).
 A failed case keeps its run folder (events log, the ``.rrd`` recording when there is one, the
 bus recording, every process's log) and its paths are printed; a passed one is removed unless
 ``--keep``. A node that crashed (an exception of its code, a failing external command) is
@@ -21,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from rra_agent.cli.common import add_wide_argument
 from rra_agent.errors import RraError
 
 PATTERN = "*.scenario.yaml"
@@ -41,6 +44,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skip-slow", action="store_true", help="skip the scenarios marked slow")
     p.add_argument("--out", metavar="DIR", help="put the run folders here (default: a temp dir)")
     p.add_argument("--keep", action="store_true", help="keep the run folders of passed cases")
+    add_wide_argument(p, "the verdict table")
 
 
 def find_scenarios(paths: list[str]) -> list[Path]:
@@ -65,7 +69,7 @@ def slug(text: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rra_agent.package.loader import flatten_errors
+    from rra_agent.package.loader import error_line, flatten_errors
     from rra_agent.scenario.model import ScenarioCase, load_scenario
     from rra_agent.scenario.runner import (
         describe_failure,
@@ -82,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             cases += load_scenario(path).cases
         except RraError as e:
             for err in flatten_errors(e):
-                print(str(err), file=sys.stderr, flush=True)
+                print(error_line(err), file=sys.stderr, flush=True)
             status = 1
     cases = [c for c in cases if not args.case or any(k in c.id for k in args.case)]
     if args.skip_slow:
@@ -105,14 +109,14 @@ def run(args: argparse.Namespace) -> int:
         runs.append(result)
         if result.passed and not args.keep:
             prune(result)  # all but its crashed nodes' logs and its verdict
-    print(render_rows(runs), flush=True)
+    print(render_rows(runs, wide=args.wide), flush=True)
     failed = [r for r in runs if not r.passed]
-    crashed = render_crashes([r for r in runs if r.passed])
+    crashed = render_crashes([r for r in runs if r.passed], wide=args.wide)
     if crashed:
         print(f"\n{crashed}", flush=True)
     for r in failed:
         print()
-        print(describe_failure(r))
+        print(describe_failure(r, wide=args.wide))
     if not args.out and not failed and not crashed and not args.keep:
         shutil.rmtree(base, ignore_errors=True)
     print(

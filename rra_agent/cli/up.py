@@ -23,18 +23,21 @@ import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.config import BusConfig, add_bus_arguments, bus_from_args
-from rra_agent.bus.counters import topic_limits
-from rra_agent.deployment import Deployment, deploy
-from rra_agent.host.agent import (
-    HostAgent,
-    describe_router,
-    schedule_self,
-    security,
-    state_printer,
+from rra_agent.bus.config import (
+    DEFAULT_HUB,
+    TLS_HUB,
+    BusConfig,
+    add_bus_arguments,
+    bus_from_args,
+    loopback_form,
 )
+from rra_agent.bus.counters import topic_limits
+from rra_agent.cli.common import add_wide_argument
+from rra_agent.deployment import Deployment, deploy
+from rra_agent.host.agent import HostAgent, schedule_self, security, state_printer
 from rra_agent.host.catalog import Catalog
 from rra_agent.host.forkserver import trim_heap
+from rra_agent.host.links import LinkWatch, banner, printer
 from rra_agent.models.system import Command, Supervision
 
 ENGINES = ("monitor", "adaptation", "resolution")
@@ -79,6 +82,7 @@ def configure(p: argparse.ArgumentParser) -> None:
         help="never delegate a planned decision to a node (docs/architecture.md, Reflexes)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    add_wide_argument(p, "the banner and progress lines")
     # -- Rerun logging (rra_agent.viz) --
     p.add_argument(
         "--rerun",
@@ -147,10 +151,50 @@ def print_partitions(session: zenoh.Session, key: str) -> zenoh.Subscriber[None]
     return session.declare_subscriber(key, on_event)
 
 
+def print_banner(
+    args: argparse.Namespace,
+    dep: Deployment,
+    bus: BusConfig,
+    agent: HostAgent,
+    run_dir: Path,
+    keep: list[Any],
+) -> None:
+    """What runs where (``Ctrl-C to stop`` on its first line): the system, its router's
+    endpoints and links, where the tools find it, the run folder; then a line whenever a
+    link to another router comes (or does not: `LinkWatch`)."""
+    default = TLS_HUB if bus.tls is not None else DEFAULT_HUB
+    tools = f"find it at {bus.hub}" + (
+        " (their default)" if bus.hub == default else f": give them --connect {bus.hub}"
+    )
+    head = (
+        f"rra up: system {dep.system!r} ({', '.join(sorted(dep.selection))}) on host "
+        f"{args.host}; Ctrl-C to stop"
+    )
+    router = agent.session_bus
+    fields = [("tools", tools), ("logs", str(run_dir))]
+    text, linked = banner(head, router, agent.session, fields, wide=args.wide)
+    print(text, flush=True)
+    if agent.session is not None:
+        say = printer("rra up: ", wide=args.wide)
+        keep.append(LinkWatch(agent.session, router.connect, say, linked=linked).start())
+
+
+def hub_bus(args: argparse.Namespace) -> BusConfig:
+    """The bus of ``rra up``: the flags' (`bus_from_args`), its hub (the first connect
+    endpoint, where the tools find it) the first ``--listen`` endpoint (its loopback form)
+    when ``--listen`` is given without ``--connect``: a second system on this machine,
+    started with its own ``--listen``, does not collide with the first on the default hub's
+    port (tcp/127.0.0.1:7447)."""
+    bus: BusConfig = bus_from_args(args, role="agent")
+    if bus.listen and not args.connect and bus.connect in ([DEFAULT_HUB], [TLS_HUB]):
+        bus = bus.override(connect=[loopback_form(bus.listen[0])])
+    return bus
+
+
 def run(args: argparse.Namespace) -> int:
     names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
     dep = deploy(args.package, names)
-    bus: BusConfig = bus_from_args(args, role="agent")
+    bus = hub_bus(args)
     bus.host_router(hub=True)  # a refused endpoint fails here, before the run folder exists
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or Path(".rra") / f"{dep.system}-{stamp}").resolve()
@@ -206,7 +250,7 @@ def _run(
         engines=True,
         **security(args, dep, args.host),
     )
-    agent.observers.append(state_printer(quiet=args.quiet))
+    agent.observers.append(state_printer(quiet=args.quiet, wide=args.wide))
     keep: list[Any] = []  # declared entities live as long as they are referenced
 
     def start_engines() -> None:
@@ -217,12 +261,7 @@ def _run(
         if not args.quiet and agent.session is not None:
             keep.append(print_partitions(agent.session, agent.keys.events))
         if not args.quiet:
-            print(
-                f"rra up: system {dep.system!r} ({', '.join(sorted(dep.selection))}) on host "
-                f"{args.host}, its router {describe_router(agent.session_bus)} (the tools' "
-                f"--connect {bus.hub}); logs in {run_dir}; Ctrl-C to stop",
-                flush=True,
-            )
+            print_banner(args, dep, bus, agent, run_dir, keep)
 
     agent.run(on_ready=start_engines)
     if not args.quiet:

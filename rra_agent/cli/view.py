@@ -16,14 +16,20 @@ What is opened:
 The viewer's servers listen on 127.0.0.1 only. ``--web`` serves the web viewer (``--port``,
 default 9090; its gRPC server on a free port) and prints the address to open. The viewer
 process replaces this one (``exec``), so Ctrl-C or a signal stops it and leaves nothing
-behind.
+behind. Without ``--web`` on Linux, a display must be there (`display_problem`: a Wayland
+socket, or an X server answering at ``$DISPLAY``); if none is, the command says so in one
+line naming the way out (``rra view --web``) instead of starting a viewer that fails with
+its windowing library's error.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
+import socket
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from urllib.parse import quote
 
@@ -118,6 +124,51 @@ def viewer_command(recording: Path, *, web: bool, port: int, grpc_port: int) -> 
     return cmd
 
 
+def display_problem(environ: Mapping[str, str] | None = None) -> str | None:
+    """Why a native viewer window cannot open here (None: a display is there, or this is not
+    Linux, where the viewer finds its own): a Wayland socket (``$WAYLAND_DISPLAY``, relative
+    to ``$XDG_RUNTIME_DIR``; or ``$WAYLAND_SOCKET``) or an X server accepting a connection at
+    ``$DISPLAY`` (its Unix socket, or TCP port 6000 + N of its host)."""
+    env = os.environ if environ is None else environ
+    if not sys.platform.startswith(("linux", "freebsd", "openbsd", "netbsd")):
+        return None
+    if env.get("WAYLAND_SOCKET"):
+        return None
+    wayland = env.get("WAYLAND_DISPLAY")
+    if wayland:
+        path = os.path.join(env.get("XDG_RUNTIME_DIR", ""), wayland)
+        if os.path.exists(path):
+            return None
+    display = env.get("DISPLAY")
+    if not display:
+        if wayland:
+            return f"no Wayland display at {path}, and $DISPLAY is not set"
+        return "no display here ($DISPLAY, $WAYLAND_DISPLAY unset)"
+    return None if _x_answers(display) else f"no X server answers at DISPLAY={display}"
+
+
+def _x_answers(display: str) -> bool:
+    """Whether an X server accepts a connection at ``display`` (``:0``, ``host:10.0``)."""
+    found = re.fullmatch(r"(?:(?P<host>[^:]*)/?)?(?::)(?P<n>\d+)(?:\.\d+)?", display)
+    if found is None:
+        return True  # a form this check does not know: let the viewer try
+    host, n = found["host"] or "", int(found["n"])
+    try:
+        if host in ("", "unix"):
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                s.settimeout(0.5)
+                path = f"/tmp/.X11-unix/X{n}"
+                try:
+                    s.connect(path)
+                except OSError:
+                    s.connect("\0" + path)  # Linux: the abstract socket of the same name
+            return True
+        with socket.create_connection((host, 6000 + n), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
 def web_address(port: int, grpc_port: int) -> str:
     source = quote(f"rerun+http://127.0.0.1:{grpc_port}/proxy", safe="")
     return f"http://127.0.0.1:{port}/?url={source}"
@@ -125,6 +176,8 @@ def web_address(port: int, grpc_port: int) -> str:
 
 def run(args: argparse.Namespace) -> int:
     recording = resolve_recording(args.target)
+    if not args.web and (why := display_problem()) is not None:
+        raise RraError(f"{why}: try `rra view --web` (in a browser)")
     grpc_port = 0
     if args.web:
         from rra_agent.bus.config import free_port

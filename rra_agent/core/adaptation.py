@@ -36,6 +36,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
+from types import CodeType
 from typing import Any, Literal
 
 import msgspec
@@ -319,6 +321,15 @@ class _Unit:
         return any(r.period is None for r in self.rules)
 
 
+@lru_cache(maxsize=16)
+def _compiled(source: str, filename: str) -> CodeType:
+    """The rules' Python source compiled, once per process and source: a code object is
+    immutable, and an engine forked after its fork server compiled it (which the fork server
+    does for the Resolution Engine's initial values, `rra_agent.deployment`) runs Python's
+    compiler no more (it wrote to ~1 MiB of the fork server's pages in each)."""
+    return compile(source, filename, "exec")
+
+
 class _Compiler:
     """AdaptationModel -> Python source of one function per unit, plus the action table."""
 
@@ -359,7 +370,7 @@ class _Compiler:
             self.lines.extend(bodies[u])
         source = "\n".join(self.lines) + "\n"
         namespace = dict(_RUNTIME)
-        exec(compile(source, f"<rules {self.model.source}>", "exec"), namespace)
+        exec(_compiled(source, f"<rules {self.model.source}>"), namespace)
         plan = [(namespace[name], u) for name, u in plan_names]
         for fn, u in plan:
             if u >= 0:

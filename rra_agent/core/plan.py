@@ -228,7 +228,22 @@ def diff(current: SystemModel, target: SystemModel) -> Plan:
         SwapComponent(component=o, replacement=n, definition=tgt[n], **wiring(tgt[n], tgt_subs))
         for o, n in swaps
     ]
-    steps += [
+    steps += _kept_steps(restarted, running, cur, tgt, cur_subs, tgt_subs)
+    steps += [StopComponent(component=n) for n in gone if n not in swapped_out]
+    return Plan(steps=tuple(steps))
+
+
+def _kept_steps(
+    restarted: list[str],
+    running: list[str],
+    cur: dict[str, Component],
+    tgt: dict[str, Component],
+    cur_subs: dict[tuple[str, str], tuple[str, ...]],
+    tgt_subs: dict[tuple[str, str], tuple[str, ...]],
+) -> list[PlanStep]:
+    """For the components in both models: `SetImplementation` of the ``restarted``, then
+    `SetParameters` and `Rewire` of those that keep ``running`` as they are."""
+    steps: list[PlanStep] = [
         SetImplementation(
             component=n,
             implementation=tgt[n].implementation,
@@ -248,8 +263,7 @@ def diff(current: SystemModel, target: SystemModel) -> Plan:
         for p in tgt[n].ports
         if p.direction == "subscribe" and cur_subs[(n, p.name)] != tgt_subs[(n, p.name)]
     ]
-    steps += [StopComponent(component=n) for n in gone if n not in swapped_out]
-    return Plan(steps=tuple(steps))
+    return steps
 
 
 def _check_comparable(current: SystemModel, target: SystemModel) -> None:

@@ -610,7 +610,7 @@ class _Resolver:
             )
 
     def _cv(self, ref: AttrRef) -> AttrRef:
-        found = self._attribute(ref.feature, ref.name, ref.span)
+        found = self._attribute(ref.feature, ref.name, ref.span, settable=True)
         if found is None:
             return ref
         fname, attr = found
@@ -625,9 +625,10 @@ class _Resolver:
         return AttrRef(name=attr.name, feature=fname, span=ref.span)
 
     def _attribute(
-        self, feature: str | None, name: str, span: Span | None
+        self, feature: str | None, name: str, span: Span | None, *, settable: bool = False
     ) -> tuple[str, Attribute] | None:
-        """A kinded attribute by (optional owner, name), with a located error if none/many."""
+        """A kinded attribute by (optional owner, name), with a located error if none/many.
+        ``settable`` (``set_attribute``): an ambiguous name is said not to be settable."""
         if feature is not None:
             fname = self.fm.resolve_name(feature)
             if fname is None:
@@ -643,12 +644,27 @@ class _Resolver:
         owners = self.attrs.get(name, [])
         if len(owners) == 1:
             return owners[0]
-        if owners:
+        if owners and settable:
+            self._ambiguous_setting(name, owners, span)
+        elif owners:
             which = ", ".join(f"{f}.{name}" for f, _ in owners)
             self.error(f"attribute {name} is ambiguous: write one of {which}", span)
         else:
             self.error(f"unknown attribute {name}{_suggest(name, self.attrs)}", span)
         return None
+
+    def _ambiguous_setting(
+        self, name: str, owners: list[tuple[str, Attribute]], span: Span | None
+    ) -> None:
+        """The error of ``set_attribute`` naming an attribute several features have. Only CIM
+        attributes of different features may share a name (`rra_agent.dsl.uvl`), and none
+        can be set: say so, rather than suggest writing one of them (a second error)."""
+        which = ", ".join(f"{f}.{name} ({a.kind.upper()})" for f, a in owners)
+        self.error(
+            f"attribute {name} cannot be set: {which} (only run-time Continuous Variability "
+            "(cv) attributes can be set)",
+            span,
+        )
 
     # expressions
     def expr(self, expr: Expr) -> tuple[Expr, Ty]:

@@ -28,6 +28,7 @@ measurements costs one evaluation per main-loop turn, not one per sample.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from typing import Any
@@ -47,7 +48,6 @@ from rra_agent.core.overrides import OverrideError
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
-from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import SelectionError
 from rra_agent.viz.rerun_log import Logger, open_logger
@@ -465,14 +465,28 @@ def _choices(forced: dict[str, bool]) -> dict[str, str]:
     return {f: "on" if on else "off" for f, on in sorted(forced.items())}
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.engines.adaptation --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_arguments, engine_setup
+def arguments() -> argparse.ArgumentParser:
+    """The command line of ``python -m rra_agent.engines.adaptation``."""
+    from rra_agent.engines.launch import engine_arguments
 
     parser = engine_arguments("rra adaptation", __doc__)
     parser.add_argument("--tick", type=float, default=0.05, help="periodic evaluation (s)")
     parser.add_argument("--heartbeat", type=float, default=1.0, help="selection heartbeat (s)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def warm_up(argv: list[str]) -> None:
+    """The fork server's hook (`rra_agent.engines.launch.warm_up`)."""
+    from rra_agent.engines import launch
+
+    launch.warm_up(argv, arguments)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rra_agent.engines.adaptation --package PKG --select F,...``."""
+    from rra_agent.engines.launch import engine_setup, parse_engine_args
+
+    args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
     if setup is None:
         return 2

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import os
 import sys
+from collections.abc import Callable
 
 import msgspec
 
@@ -44,12 +46,41 @@ def selection(args: argparse.Namespace) -> list[str]:
     return [n.strip() for v in args.select for n in v.split(",") if n.strip()]
 
 
-def warm_up(argv: list[str]) -> None:
+def warm_up(
+    argv: list[str], arguments: Callable[[], argparse.ArgumentParser] | None = None
+) -> None:
     """In the fork server, before it forks an engine with these arguments: load and resolve
-    the package it will (a model error is left for the engine to report)."""
+    the package it will (a model error is left for the engine to report), and parse them
+    with the engine's ``arguments`` (`parse_engine_args` then hands them over)."""
     args, _ = engine_arguments("rra engine", None).parse_known_args(argv)
     with contextlib.suppress(RraError):
         prepare(args.package, selection(args))
+    if arguments is not None:
+        _parse_ahead(arguments, argv)
+
+
+#: Arguments parsed by `warm_up`, by (the engine's module, argv).
+_parsed: dict[tuple[str, tuple[str, ...]], argparse.Namespace] = {}
+
+
+def _parse_ahead(arguments: Callable[[], argparse.ArgumentParser], argv: list[str]) -> None:
+    """Keep ``arguments().parse_args(argv)`` for the engines forked after (an error, printed
+    by the engine itself, is not kept)."""
+    with contextlib.suppress(Exception, SystemExit), contextlib.redirect_stderr(io.StringIO()):
+        _parsed[(arguments.__module__, tuple(argv))] = arguments().parse_args(argv)
+
+
+def parse_engine_args(
+    arguments: Callable[[], argparse.ArgumentParser], argv: list[str] | None
+) -> argparse.Namespace:
+    """``arguments().parse_args(argv)``, or a copy of what `warm_up` parsed ahead: building
+    and running an argparse parser wrote to ~1 MiB of the fork server's pages in each
+    engine forked from it."""
+    key = (arguments.__module__, tuple(sys.argv[1:] if argv is None else argv))
+    kept = _parsed.get(key)
+    if kept is not None:
+        return argparse.Namespace(**vars(kept))
+    return arguments().parse_args(argv)
 
 
 def engine_setup(

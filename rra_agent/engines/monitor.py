@@ -41,6 +41,7 @@ newest value of each measurement, so a restarted Adaptation Engine resumes from 
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from collections.abc import Callable
@@ -58,7 +59,6 @@ from rra_agent.core.plan import topic_of
 from rra_agent.core.samples import MALFORMED, Refusal
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
-from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
 from rra_agent.models.system import parse_endpoint
@@ -400,11 +400,25 @@ class ContextMonitorProcess(EngineProcess):
             self.viz.close()
 
 
+def arguments() -> argparse.ArgumentParser:
+    """The command line of ``python -m rra_agent.engines.monitor``."""
+    from rra_agent.engines.launch import engine_arguments
+
+    return engine_arguments("rra monitor", __doc__)
+
+
+def warm_up(argv: list[str]) -> None:
+    """The fork server's hook (`rra_agent.engines.launch.warm_up`)."""
+    from rra_agent.engines import launch
+
+    launch.warm_up(argv, arguments)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.monitor --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_arguments, engine_setup
+    from rra_agent.engines.launch import engine_setup, parse_engine_args
 
-    args = engine_arguments("rra monitor", __doc__).parse_args(argv)
+    args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
     if setup is None:
         return 2

@@ -32,6 +32,7 @@ agents own them. Status (selection, CV values, desired and observed nodes) is se
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import threading
@@ -72,7 +73,6 @@ from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Ctl, Executor, Outcome, StepFailed, UnitFailure, spec_for
-from rra_agent.engines.launch import warm_up as warm_up  # the fork server's hook
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.engines.reflexes import ReflexCompiler, ReflexKeeper, Situation
@@ -564,13 +564,16 @@ class ResolutionEngineProcess(EngineProcess):
         decided = f"selection {sorted(self.selection)}"
         if outcome.ok:
             text = f"applied {decided}" + (
-                f", {outcome.steps} step(s)" if plan.steps else " (no change to the system)"
+                f", {_actions(outcome)}" if plan.steps else " (no change to the system)"
             )
             self._event("adaptation", text, msg, outcome="ok", plan=outcome, durations=durations)
             return
         failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
         if outcome.applied:
-            head = f"adaptation partly applied ({outcome.applied} of {outcome.steps} steps)"
+            head = (
+                f"adaptation partly applied ({outcome.applied} of {outcome.steps} plan steps; "
+                f"{_actions(outcome)})"
+            )
             kind = "partial"
         elif outcome.rolled_back:
             head, kind = "adaptation failed, rolled back", "rolled_back"
@@ -730,19 +733,59 @@ class ResolutionEngineProcess(EngineProcess):
                 return self.set_params(node, params, reset)
             case m.GetState():
                 return m.Ok(result=msgspec.to_builtins(self.engine_state()))
+            case m.GetParams(node=node):
+                if not self.leading:
+                    return m.Err(message=f"{self.name} does not lead", code="not_leader")
+                return self.node_params(node)
             case m.Retry(components=components, operator=who):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
                 return self.retry(list(components), who)
         return super().serve(request)
 
+    def _no_component(self, node: str) -> m.Err:
+        self.refuse("param", f"no component {node!r}")
+        names = ", ".join(sorted(c.name for c in self.dep.configured.components))
+        return m.Err(
+            message=f"no node {node!r} in system {self.dep.system!r} (its nodes: {names})",
+            code="unknown",
+        )
+
+    def node_state(self, node: str) -> str:
+        """``running``, ``standby`` (started, inactive) or ``stopped``."""
+        if node in self.executor.standby:
+            return "standby"
+        return "running" if node in self.executor.running else "stopped"
+
+    def node_params(self, node: str) -> m.Reply:
+        """``GetParams``: the values a node runs with, or, not running, will start with (what
+        a `SetParam` to it changes, either way)."""
+        if self.dep.configured.component(node) is None:
+            return self._no_component(node)
+        spec = self.executor.running.get(node) or self.executor.standby.get(node)
+        if spec is not None:
+            params = dict(spec.params)
+        else:
+            try:  # in the model decided now (its CV values), else as configured
+                c = self.target(self.selection, self.cv).component(node)
+            except RraError:
+                c = None
+            if c is None:
+                c = r.with_parameters(self.dep.configured, self.overrides).component(node)
+            params = {k: p.value for k, p in c.parameters.items()} if c is not None else {}
+        return m.Ok(
+            result={
+                "node": node,
+                "state": self.node_state(node),
+                "params": params,
+                "overrides": dict(self.overrides.get(node, {})),
+            }
+        )
+
     def set_params(self, node: str, params: dict[str, Any], reset: list[str]) -> m.Reply:
         component = next((c for c in self.dep.configured.components if c.name == node), None)
         if component is None:
-            self.refuse("param", f"no component {node!r}")
-            return m.Err(
-                message=f"no component {node!r} in system {self.dep.system}", code="unknown"
-            )
+            return self._no_component(node)
         try:
             values = r.check_parameters(self.dep.configured, node, params)
             unknown = [n for n in reset if n not in component.parameters]
@@ -765,7 +808,13 @@ class ResolutionEngineProcess(EngineProcess):
         self._changed()
         self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
         return m.Ok(
-            result={"node": node, "params": values, "overrides": dict(self.overrides.get(node, {}))}
+            result={
+                "node": node,
+                "params": values,
+                "overrides": dict(self.overrides.get(node, {})),
+                # not running: it will start with them (the read, GetParams, says the same)
+                "state": self.node_state(node),
+            }
         )
 
     def _apply_overrides(self, node: str) -> Outcome | None:
@@ -873,7 +922,7 @@ class ResolutionEngineProcess(EngineProcess):
         failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
         self._event(
             kind,
-            f"{what}, {len(plan.steps) + len(missing)} step(s) ({reason})"
+            f"{what}, {_actions(outcome)} ({reason})"
             if outcome.ok
             else f"{kind} partly applied: {what}; not applied: {failed}",
             None,
@@ -1321,6 +1370,13 @@ def _impl(model: SystemModel, name: str) -> Any:
     return None if c is None else c.implementation
 
 
+def _actions(outcome: Outcome) -> str:
+    """``5 actions``: how many actions an event's plan lists (its lines but the notes), the
+    number it says being the number of lines it shows (``rra events``)."""
+    n = sum(1 for rec in outcome.records if rec.action != "note")
+    return f"{n} action" + ("" if n == 1 else "s")
+
+
 def _rerun_config() -> dict[str, Any]:
     """This run's Rerun configuration (``RRA_RERUN``, from ``rra up --rerun``)."""
     from rra_agent.viz.rerun_log import RerunConfig
@@ -1345,9 +1401,9 @@ def _observed(st: m.NodeState) -> dict[str, Any]:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m rra_agent.engines.resolution --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_arguments, engine_setup
+def arguments() -> argparse.ArgumentParser:
+    """The command line of ``python -m rra_agent.engines.resolution``."""
+    from rra_agent.engines.launch import engine_arguments
 
     parser = engine_arguments("rra resolution", __doc__)
     parser.add_argument("--retry-after", type=float, default=5.0)
@@ -1356,7 +1412,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-reflexes", action="store_true", help="never delegate a decision to a node"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def warm_up(argv: list[str]) -> None:
+    """The fork server's hook (`rra_agent.engines.launch.warm_up`)."""
+    from rra_agent.engines import launch
+
+    launch.warm_up(argv, arguments)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rra_agent.engines.resolution --package PKG --select F,...``."""
+    from rra_agent.engines.launch import engine_setup, parse_engine_args
+
+    args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
     if setup is None:
         return 2

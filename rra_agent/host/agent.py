@@ -42,7 +42,7 @@ from typing import Any
 import msgspec
 import zenoh
 
-from rra_agent import trace
+from rra_agent import text, trace
 from rra_agent.bus import counters
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig, explain_open_failure, node_zid
@@ -52,7 +52,7 @@ from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.session import open_session
 from rra_agent.core.election import Term, newer
 from rra_agent.errors import RraError
-from rra_agent.host import scheduling, unique
+from rra_agent.host import links, scheduling, unique
 from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
@@ -686,24 +686,21 @@ def security(args, dep, host: str) -> dict[str, Any]:  # argparse.Namespace, Dep
     return {"certs": args.certs, "access_control": access_control(dep, host)}
 
 
-def state_printer(prefix: str = "", quiet: bool = False) -> Callable[[m.NodeState], None]:
-    """An observer printing each node-state change as one line (``rra up``, ``rra agent``)."""
+def state_printer(
+    prefix: str = "", quiet: bool = False, wide: bool = False
+) -> Callable[[m.NodeState], None]:
+    """An observer printing each node-state change as one line (``rra up``, ``rra agent``),
+    wrapped at `rra_agent.text.WIDTH` unless ``wide``."""
 
     def show(st: m.NodeState) -> None:
         if quiet:
             return
         pid = f" pid {st.pid}" if st.pid else ""
         why = f" ({st.reason})" if st.reason and st.state not in ("RUNNING", "STARTING") else ""
-        line = f"{st.node:<24} {st.state}{pid}{why}"
-        print(f"[{time.strftime('%H:%M:%S')}] {prefix}{line}", flush=True)
+        line = f"[{time.strftime('%H:%M:%S')}] {prefix}{st.node:<24} {st.state}{pid}{why}"
+        print("\n".join(text.wrap(line, indent=" " * 11, wide=wide)), flush=True)
 
     return show
-
-
-def describe_router(bus: BusConfig) -> str:
-    """``listens on A, B; linked to C``: a host agent's router endpoints, for its banner."""
-    out = f"listens on {', '.join(bus.listen)}"
-    return out + (f"; linked to {', '.join(bus.connect)}" if bus.connect else "")
 
 
 def configure(parser) -> None:  # argparse.ArgumentParser
@@ -726,6 +723,11 @@ def configure(parser) -> None:  # argparse.ArgumentParser
     )
     parser.add_argument("--log-dir", default="rra-logs", help="node logs go here")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    parser.add_argument(
+        "--wide",
+        action="store_true",
+        help=f"the banner and progress lines on long lines, not fitted to {text.WIDTH} columns",
+    )
     parser.add_argument(
         "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
     )
@@ -764,16 +766,21 @@ def run(args) -> int:  # argparse.Namespace
         **security(args, dep, args.host),
     )
     quiet = getattr(args, "quiet", False)
-    agent.observers.append(state_printer(quiet=quiet))
+    wide = getattr(args, "wide", False)
+    agent.observers.append(state_printer(quiet=quiet, wide=wide))
+    watch: list[Any] = []
 
     def banner() -> None:
-        if not quiet:
-            print(
-                f"rra agent: host {args.host} of system {dep.system!r}; its router "
-                f"{describe_router(agent.session_bus)}; logs in "
-                f"{Path(args.log_dir).resolve()}; Ctrl-C to stop",
-                flush=True,
-            )
+        if quiet:
+            return
+        head = f"rra agent: host {args.host} of system {dep.system!r}; Ctrl-C to stop"
+        logs = [("logs", str(Path(args.log_dir).resolve()))]
+        router = agent.session_bus
+        lines, linked = links.banner(head, router, agent.session, logs, wide=wide)
+        print(lines, flush=True)
+        if agent.session is not None:
+            say = links.printer("rra agent: ", wide=wide)
+            watch.append(links.LinkWatch(agent.session, router.connect, say, linked=linked).start())
 
     agent.run(on_ready=banner)
     if not quiet:

@@ -73,8 +73,18 @@ import msgspec
 from rra_agent import trace
 from rra_agent.bus.messages import NodeSpec
 
-#: What every Python node needs: imported once, in the zygote.
-PRELOAD = ("zenoh", "msgspec", "rra_agent.node.runtime", "rra_agent.node")
+#: What every Python node needs: imported once, in the zygote. Also what a node imports as
+#: it starts (``run_node``) or may import in its hooks (Rerun logging: the module, not
+#: rerun): a module first imported in a forked node costs it its own copy of every page the
+#: import machinery writes to (measured: 0.5 MiB per node for ``rra_agent.node.process``).
+PRELOAD = (
+    "zenoh",
+    "msgspec",
+    "rra_agent.node.runtime",
+    "rra_agent.node",
+    "rra_agent.node.process",
+    "rra_agent.viz.rerun_log",
+)
 _PR_SET_PDEATHSIG = 1
 _PR_SET_CHILD_SUBREAPER = 36
 #: How long a node waits to be adopted by the host agent before it gives up.
@@ -85,6 +95,8 @@ EXIT_SETUP = 71
 #: Spare node processes kept forked, adopted and waiting for a request: a start then costs
 #: neither a fork nor the wait for the adoption (measured ~7 ms of a 20 ms cold start).
 SPARES = int(os.environ.get("RRA_SPARE_NODES", "1"))
+#: Seconds without a request after which the branch (`_Branch`) is retired.
+BRANCH_IDLE = float(os.environ.get("RRA_BRANCH_IDLE", "5"))
 
 
 def _prctl(option: int, value: int) -> bool:
@@ -100,6 +112,46 @@ def trim_heap() -> None:
     elsewhere): what loading modules and models freed stays mapped otherwise."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None).malloc_trim(0)
+
+
+def _pool_vacancies() -> dict[int, int]:
+    """Free blocks in the partly used pools of Python's small-object allocator, by block
+    size (``sys._debugmallocstats``, which writes to the C stderr)."""
+    import tempfile
+
+    with tempfile.TemporaryFile() as out:
+        saved = os.dup(2)
+        try:
+            sys.stderr.flush()
+            os.dup2(out.fileno(), 2)
+            sys._debugmallocstats()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        out.seek(0)
+        text = out.read().decode(errors="replace")
+    vacancies: dict[int, int] = {}
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 5 and all(p.isdigit() for p in parts):
+            vacancies[int(parts[1])] = int(parts[4])
+    return vacancies
+
+
+#: What `fill_pools` keeps alive (never freed: the zygote's filled pools stay full).
+_FILLERS: list[bytes] = []
+
+
+def fill_pools() -> None:
+    """Fill the free blocks of the partly used pools of Python's allocator before forking:
+    else a forked child's first small objects land in them, and every such block copies the
+    zygote's page it is on (and its pool's header) into the child. CPython's allocator
+    only (``sys._debugmallocstats``); nothing elsewhere."""
+    if not hasattr(sys, "_debugmallocstats"):
+        return
+    for size, free in _pool_vacancies().items():
+        if size >= 48:  # a bytes object of n bytes asks for 33 + n
+            _FILLERS.extend(bytes(size - 33) for _ in range(free))
 
 
 def die_with_parent() -> None:
@@ -183,6 +235,7 @@ def serve(
     with contextlib.suppress(Exception):
         _warm_sdk()
     trim_heap()
+    fill_pools()
     # What the zygote made is never freed: keep the garbage collector of every fork from
     # visiting (and so copying) its pages.
     gc.freeze()
@@ -209,14 +262,18 @@ def _serve_requests(
 ) -> int:
     """Answer the requests read from ``requests`` until its end of file, keeping ``wanted``
     spares (each opening a session with ``preopen``, if given); a request with ``main``
-    goes to ``branch`` if there is one."""
-    held = [branch.pipe] if branch is not None else []
+    goes to ``branch`` if there is one, which is retired once it has idled `BRANCH_IDLE`."""
+    held = [branch.pipe] if branch is not None and branch.pipe is not None else []
     buffer = b""
     while True:
         with contextlib.suppress(OSError):
             while len(spares) < wanted:
                 spares.append(_spare([requests, out], host_pid, spares, held, preopen))
-        select.select([requests], [], [])
+        due = branch.due(time.monotonic()) if branch is not None else None
+        if not select.select([requests], [], [], due)[0]:
+            if branch is not None and branch.tick(time.monotonic()):
+                held[:] = []
+            continue
         chunk = os.read(requests, 65536)
         if not chunk:
             return 0
@@ -228,7 +285,7 @@ def _serve_requests(
             request = json.loads(line)
             if branch is not None and request.get("main"):
                 branch.forward(line)
-                held[:] = [branch.pipe]
+                held[:] = [branch.pipe] if branch.pipe is not None else []
             else:
                 _start(request, line, spares, out, [requests, out], host_pid, held, preopen)
 
@@ -242,13 +299,29 @@ class _Branch:
     writes to, and a bigger zygote heap offers it more pages to write to (measured with
     ``tools/bench_memory.py``: 4.3 MiB per node, 5.8 with the engines' modules and
     deployment in the zygote). The branch dies with the zygote (parent-death signal); one
-    that died is forked again at the next request."""
+    that died is forked again at the next request.
+
+    Once it has had no request for `BRANCH_IDLE` seconds the zygote *retires* it (closes its
+    pipe: it exits; the engines it forked are the host agent's and run on) and forks a new
+    one, which warms up again, at the next request. Every page an engine has written is the
+    engine's own copy, so the branch's original is its alone: kept, it costs its private
+    memory (6 MiB of object_storing's, docs/performance.md) for nothing but a faster restart
+    of a crashed engine, whose standby has taken over meanwhile."""
 
     def __init__(
         self, mains: list[list[str]], out: int, host_pid: int, spares: list[tuple[int, int]]
     ) -> None:
         self.mains, self.out, self.host_pid, self.spares = mains, out, host_pid, spares
+        self.pid: int | None = None
+        self.pipe: int | None = None
+        self.last = 0.0
+        #: Retired branches not reaped yet (each exits once it has read its end of file).
+        self.retired: list[int] = []
+        self._start()
+
+    def _start(self) -> None:
         self.pid, self.pipe = self._fork()
+        self.last = time.monotonic()
 
     def _fork(self) -> tuple[int, int]:
         """(the branch's pid, the write end of its request pipe)."""
@@ -267,6 +340,7 @@ class _Branch:
                     os._exit(0)
                 _warm_mains(self.mains)
                 trim_heap()
+                fill_pools()
                 gc.freeze()
                 code = _serve_requests(requests, self.out, self.host_pid, 0, [], None)
             finally:
@@ -274,22 +348,57 @@ class _Branch:
         os.close(requests)
         return pid, pipe
 
+    def due(self, now: float) -> float | None:
+        """Seconds until `tick` has something to do: retire it, or reap a retired one (a
+        tenth of a second, until it has exited); None: nothing."""
+        if self.retired:
+            return 0.1
+        if self.pid is None:
+            return None
+        return max(0.0, self.last + BRANCH_IDLE - now)
+
+    def tick(self, now: float) -> bool:
+        """Reap the retired branches that have exited; retire this one if it has idled
+        `BRANCH_IDLE` (True then)."""
+        for pid in list(self.retired):
+            with contextlib.suppress(ChildProcessError):
+                if os.waitpid(pid, os.WNOHANG)[0] == 0:
+                    continue
+            self.retired.remove(pid)
+        if self.pid is None or now < self.last + BRANCH_IDLE:
+            return False
+        self.retire()
+        return True
+
     def forward(self, line: bytes) -> None:
-        """Pass a request on (to a new branch if this one died)."""
+        """Pass a request on (to a new branch if this one was retired or died)."""
+        if self.pipe is None:
+            self._start()
         try:
-            os.write(self.pipe, line + b"\n")
+            os.write(self.pipe, line + b"\n")  # type: ignore[arg-type]
         except OSError:
             self.close()
             with contextlib.suppress(OSError):
-                os.kill(self.pid, signal.SIGKILL)
-                os.waitpid(self.pid, 0)
-            self.pid, self.pipe = self._fork()
-            os.write(self.pipe, line + b"\n")
+                os.kill(self.pid, signal.SIGKILL)  # type: ignore[arg-type]
+                os.waitpid(self.pid, 0)  # type: ignore[arg-type]
+            self._start()
+            os.write(self.pipe, line + b"\n")  # type: ignore[arg-type]
+        self.last = time.monotonic()
+
+    def retire(self) -> None:
+        """Close its pipe: it exits at the end of file, after the requests it was given (the
+        engines it forked are not its children); `tick` reaps it."""
+        if self.pid is not None:
+            self.retired.append(self.pid)
+        self.pid = None
+        self.close()
 
     def close(self) -> None:
         """No more requests: the branch sees the end of its pipe and exits."""
-        with contextlib.suppress(OSError):
-            os.close(self.pipe)
+        if self.pipe is not None:
+            with contextlib.suppress(OSError):
+                os.close(self.pipe)
+            self.pipe = None
 
 
 def _start(

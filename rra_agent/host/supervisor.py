@@ -4,6 +4,7 @@ States (as in Supervisor, plus one for a suspected freeze)::
 
     STOPPED --start--> STARTING --ready--> RUNNING
     STARTING --exit | start timeout--> BACKOFF --backoff elapsed--> STARTING
+    (a first crash in the restart window: BACKOFF --at once--> STARTING; `backoff`)
     RUNNING --heartbeat older than its deadline--> UNRESPONSIVE (a direct probe is sent)
     UNRESPONSIVE --probe answered | heartbeat again--> RUNNING
     UNRESPONSIVE --no answer within probe_timeout--> killed --> BACKOFF
@@ -150,6 +151,18 @@ class Notice:
     kind: str
     message: str
     nodes: tuple[str, ...] = ()
+
+
+def backoff(policy: Supervision, failures: int, gone: bool) -> float:
+    """The wait before a restart, with ``failures`` failures in the restart window (this one
+    included): none for the first crash of a process that is gone (the OS reported its exit:
+    nothing of it is left to wait for), else ``backoff_initial`` doubled with every further
+    failure, up to ``backoff_max`` (a second crash waits ``backoff_initial``; a node killed
+    for a freeze or a start timeout waits from its first failure on, while it is reaped)."""
+    if gone and failures <= 1:
+        return 0.0
+    doublings = failures - 2 if gone else failures - 1
+    return min(policy.backoff_max, policy.backoff_initial * 2**doublings)
 
 
 class Supervisor:
@@ -437,9 +450,20 @@ class Supervisor:
             p.deadline = None
             self._set(p, State.EXITED, now, with_failure("exited normally", failure), failure)
             return
-        self._failed(p, now, f"exited with status {status}", failure)
+        self._failed(p, now, f"exited with status {status}", failure, gone=True)
 
-    def _failed(self, p: Proc, now: float, reason: str, failure: Failure | None = None) -> None:
+    def _failed(
+        self,
+        p: Proc,
+        now: float,
+        reason: str,
+        failure: Failure | None = None,
+        *,
+        gone: bool = False,
+    ) -> None:
+        """A failure: EXITED (no restart wanted), FATAL (the restart budget spent) or a
+        restart after `backoff`; ``gone``: the OS reported the process's exit, so a first
+        failure in the window restarts it at once (through BACKOFF, which reports it)."""
         pol = p.policy
         if pol.restart == "never" or not p.want_running:
             p.deadline = None
@@ -456,9 +480,11 @@ class Supervisor:
             return
         p.failures.append(now)
         p.restarts += 1
-        backoff = min(pol.backoff_max, pol.backoff_initial * 2 ** (len(p.failures) - 1))
-        p.deadline = now + backoff
+        delay = backoff(pol, len(p.failures), gone)
+        p.deadline = now + delay
         self._set(p, State.BACKOFF, now, with_failure(reason, failure), failure)
+        if delay == 0 and p.state == State.BACKOFF:
+            self._spawn(p, now, f"restart {p.restarts} (at once: the first crash in the window)")
 
     def _fatal(self, p: Proc, now: float, reason: str, failure: Failure | None = None) -> None:
         cooldown = p.policy.cooldown

@@ -43,14 +43,31 @@ class Parameter(FrozenModel, frozen=True):
     value: ParamValue
     unit: str | None = None
     description: str | None = None
+    #: Bounds, in the parameter's type: an int parameter's are ints (``min: 0``, never
+    #: ``0.0`` in what `rra resolve` prints), a float parameter's floats.
     min: float | None = None
     max: float | None = None
 
     def __post_init__(self) -> None:
         if not value_has_type(self.value, self.type):
             raise ValueError(f"value {self.value!r} is not of type {self.type}")
+        for bound in ("min", "max"):
+            typed = _bound_in_type(getattr(self, bound), self.type)
+            msgspec.structs.force_setattr(self, bound, typed)
         if self.min is not None and self.max is not None and self.min > self.max:
             raise ValueError(f"min {self.min} is greater than max {self.max}")
+
+
+def _bound_in_type(bound: float | None, type_: ParamType) -> float | None:
+    """A bound as the parameter's type has it: an integral bound of an int parameter an int,
+    a bound of a float parameter a float (others as written)."""
+    if bound is None or isinstance(bound, bool):
+        return bound
+    if type_ == "int" and float(bound).is_integer():
+        return int(bound)
+    if type_ == "float":
+        return float(bound)
+    return bound
 
 
 def value_has_type(value: object, type_: ParamType) -> bool:

@@ -1040,12 +1040,30 @@ def check_signal(
         return Outcome(True, _summary(pieces, show) + f" over [{a:.2f}, {b:.2f}] s", a)
     for t, v in pieces:
         if pred(v):
-            return Outcome(True, f"{show(v)} at {t:.2f} s{_rel(t, when, idx)}", t)
+            already = _already(sig, pieces, a, b, show) if t == a else ""
+            return Outcome(True, already or f"{show(v)} at {t:.2f} s{_rel(t, when, idx)}", t)
     if not pieces:
         return Outcome(False, f"no value in [{a:.2f}, {b:.2f}] s{note}")
     return Outcome(
         False, f"never in [{a:.2f}, {b:.2f}] s: {_summary(pieces, show)}{note}", pieces[-1][0]
     )
+
+
+def _already(
+    sig: Signal, pieces: list[tuple[float, Any]], a: float, b: float, show: Callable[[Any], str]
+) -> str:
+    """What an ``eventually`` that held at the window's start observed, when the value was
+    already in force before it (``""`` otherwise): since when, and whether it ever changed in
+    the window (a state that never changed after a kill: the kill did not show)."""
+    held = Index.value_at(sig, a)
+    if held is None or held[0] >= a:
+        return ""  # the value came at the window's start itself: it did change there
+    since = "the start" if held[0] == -math.inf else f"{held[0]:.2f} s"
+    text = f"{show(pieces[0][1])} already, since {since}"
+    if all(v == pieces[0][1] for _, v in pieces):
+        return f"{text}; never changed in [{a:.2f}, {b:.2f}] s"
+    changed = next(t for t, v in pieces if v != pieces[0][1])
+    return f"{text}; first changed at {changed:.2f} s"
 
 
 def _summary(pieces: list[tuple[float, Any]], show: Callable[[Any], str]) -> str:

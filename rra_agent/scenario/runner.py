@@ -47,6 +47,7 @@ import msgspec
 import yaml
 import zenoh
 
+from rra_agent import text
 from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, NoReply, wait_until
@@ -769,47 +770,49 @@ def run_case(case: ScenarioCase, run_dir: Path, *, startup_timeout: float = 60.0
 
 
 # ---- the verdict as a table --------------------------------------------------------------------
-def render_rows(runs: list[CaseRun], *, width: int = 60) -> str:
-    """``SCENARIO  EXPECTATION  OUTCOME  OBSERVED`` for every row of every run."""
+def render_rows(runs: list[CaseRun], *, wide: bool = False) -> str:
+    """``SCENARIO  EXPECTATION  OUTCOME  OBSERVED`` for every row of every run, in `WIDTH`
+    columns: the expectation and what was observed wrapped in their columns (``wide``: one
+    line per row)."""
     table = [("SCENARIO", "EXPECTATION", "OUTCOME", "OBSERVED")]
     for run in runs:
         if run.error is not None:
             table.append((run.case.id, "(the run)", "ERROR", run.error.splitlines()[0]))
         for r in run.rows:
-            text = r.text if len(r.text) <= width else r.text[: width - 3] + "..."
             table.append(
-                (run.case.id, text, "pass" if r.outcome.passed else "FAIL", r.outcome.observed)
+                (run.case.id, r.text, "pass" if r.outcome.passed else "FAIL", r.outcome.observed)
             )
-    widths = [max(len(row[i]) for row in table) for i in range(3)]
-    return "\n".join(
-        "  ".join(cell.ljust(w) for cell, w in zip(row[:3], widths, strict=True)) + "  " + row[3]
-        for row in table
-    )
+    return text.table(table, wrapping=(0, 1, 3), wide=wide)
 
 
-def render_crashes(runs: list[CaseRun]) -> str:
+def render_crashes(runs: list[CaseRun], *, wide: bool = False) -> str:
     """One line per node that crashed in ``runs``: what it raised and where, then its kept
-    log (nothing when none did)."""
+    log (nothing when none did); wrapped at `WIDTH` unless ``wide``."""
     lines = []
     for run in runs:
         for c in run.crashes:
-            lines.append(f"{run.case.id}: node {c.node} crashed ({c.state}): "
-                         f"{failure.summary(c.failure)}")  # fmt: skip
+            head = f"{run.case.id}: node {c.node} crashed ({c.state}): {failure.summary(c.failure)}"
+            lines += text.wrap(head, indent="    ", wide=wide)
             lines.append(f"    log: {c.log}" if c.log else "    log: not found")
     return "\n".join(lines)
 
 
-def describe_failure(run: CaseRun) -> str:
+def describe_failure(run: CaseRun, *, wide: bool = False) -> str:
     """What failed, where (scenario file:line) and what was observed; the nodes that
-    crashed, with what they raised; the kept artefacts."""
-    lines = [f"scenario {run.case.id} ({run.case.file}) failed after {run.seconds:.1f} s:"]
+    crashed, with what they raised; the kept artefacts. The ``file:line: expectation
+    failed`` lines stay whole (editors jump to them); the rest is wrapped at `WIDTH`."""
+    lines = text.wrap(
+        f"scenario {run.case.id} ({run.case.file}) failed after {run.seconds:.1f} s:", wide=wide
+    )
     if run.error is not None:
-        lines.append(f"  the run failed: {run.error}")
+        first, *rest = f"  the run failed: {run.error}".splitlines()
+        lines += text.wrap(first, indent="    ", wide=wide) + rest
     for r in run.failures:
         lines.append(f"{r.where}: expectation failed: {r.text}")
-        lines.append(f"    observed: {r.outcome.observed}")
+        lines += text.wrap(f"    observed: {r.outcome.observed}", indent="      ", wide=wide)
     for c in run.crashes:
-        lines.append(f"  node {c.node} crashed ({c.state}): {failure.summary(c.failure)}")
+        crashed = f"  node {c.node} crashed ({c.state}): {failure.summary(c.failure)}"
+        lines += text.wrap(crashed, indent="    ", wide=wide)
     for p in run.artifacts():
         lines.append(f"  kept: {p}")
     return "\n".join(lines)

@@ -766,20 +766,15 @@ def simulate(
     """
     p = params or QuadParams()
     traj = trajectory or Trajectory()
-    quad = Quadcopter(p, position=tuple(traj.start), seed=seed)
-    if degrade is not None:
-        quad.degrade_motor(*degrade)
-    if noise > 0:
-        quad.set_sensor_noise(noise)
+    quad = _build_quad(p, traj, degrade, noise, seed)
     est = Estimator(noise if estimator_noise is None else estimator_noise, dt=quad.dt)
     ctrl = StandardController(p)
     pl = proploss or ProplossController(p, dt=quad.dt)
     pipeline: list[dict[str, Any]] = []
-    steps = round(duration / quad.dt)
-    rec: dict[str, list] = {k: [] for k in ("t", "pos", "sp", "tilt", "r", "work")}
+    rec = _Recording()
     crashed_at = switched_at = None
-    active = "standard"
-    for i in range(steps):
+    switch_at = None if fail_at is None or switch_delay is None else fail_at + switch_delay
+    for i in range(round(duration / quad.dt)):
         t = quad.time
         if fail_at is not None and not quad.faults.broken[fail_motor] and t >= fail_at - 1e-9:
             quad.break_motor(fail_motor)
@@ -790,37 +785,61 @@ def simulate(
         pl.observe_telemetry(tel)
         cmd_std = ctrl.update(e, sp)
         cmd_pl = pl.update(e, sp)
-        if (
-            active == "standard"
-            and fail_at is not None
-            and switch_delay is not None
-            and t >= fail_at + switch_delay - 1e-9
-        ):
+        if switched_at is None and switch_at is not None and t >= switch_at - 1e-9:
             pl.import_state(ctrl.export_state() | {"failed_motor": None})
-            active, switched_at = "proploss", t
+            switched_at = t
             cmd_pl = pl.update(e, sp)
-        cmd = cmd_pl if active == "proploss" and cmd_pl is not None else cmd_std
-        quad.set_command(cmd)
+        quad.set_command(cmd_pl if switched_at is not None and cmd_pl is not None else cmd_std)
         if on_step is not None:
             on_step(quad, t)
         quad.step()
         if quad.crashed and crashed_at is None:
             crashed_at = quad.time
         if i % record_every == 0:
-            rec["t"].append(quad.time)
-            rec["pos"].append(quad.position)
-            rec["sp"].append(sp["position"])
-            rec["tilt"].append(quad.tilt)
-            rec["r"].append(float(quad.data.qvel[5]))
-            rec["work"].append(working_motors(tel))
-    return Run(
-        time=np.array(rec["t"]),
-        position=np.array(rec["pos"]),
-        setpoint=np.array(rec["sp"]),
-        tilt=np.array(rec["tilt"]),
-        yaw_rate=np.array(rec["r"]),
-        working=np.array(rec["work"]),
-        crashed_at=crashed_at,
-        crash_reason=quad.crash_reason,
-        switched_at=switched_at,
-    )
+            rec.add(quad, sp, tel)
+    return rec.run(crashed_at, quad.crash_reason, switched_at)
+
+
+def _build_quad(
+    p: QuadParams,
+    traj: Trajectory,
+    degrade: tuple[int, float] | None,
+    noise: float,
+    seed: int,
+) -> Quadcopter:
+    """The simulated quadcopter at the trajectory's start, degraded and noisy as asked."""
+    quad = Quadcopter(p, position=tuple(traj.start), seed=seed)
+    if degrade is not None:
+        quad.degrade_motor(*degrade)
+    if noise > 0:
+        quad.set_sensor_noise(noise)
+    return quad
+
+
+class _Recording:
+    """The samples `simulate` keeps, turned into a `Run` at the end."""
+
+    def __init__(self) -> None:
+        self.rows: dict[str, list[Any]] = {k: [] for k in ("t", "pos", "sp", "tilt", "r", "work")}
+
+    def add(self, quad: Quadcopter, sp: dict[str, Any], tel: dict[str, Any]) -> None:
+        self.rows["t"].append(quad.time)
+        self.rows["pos"].append(quad.position)
+        self.rows["sp"].append(sp["position"])
+        self.rows["tilt"].append(quad.tilt)
+        self.rows["r"].append(float(quad.data.qvel[5]))
+        self.rows["work"].append(working_motors(tel))
+
+    def run(self, crashed_at: float | None, reason: str, switched_at: float | None) -> Run:
+        r = self.rows
+        return Run(
+            time=np.array(r["t"]),
+            position=np.array(r["pos"]),
+            setpoint=np.array(r["sp"]),
+            tilt=np.array(r["tilt"]),
+            yaw_rate=np.array(r["r"]),
+            working=np.array(r["work"]),
+            crashed_at=crashed_at,
+            crash_reason=reason,
+            switched_at=switched_at,
+        )

@@ -227,6 +227,8 @@ class VehicleSimulator(Node):
         detail = f"{inj.kind} " + " ".join(f"{k}={v}" for k, v in sorted(args.items()))
         trace.mark("sim:fault", self.ctx.name)
         self._event("fault", detail.strip())
+        if self.viz is not None:
+            self.viz.injection(detail.strip(), sim_time=q.time, altitude=float(q.position[2]))
 
     # ---- injection subscription ------------------------------------------------------------
     def _subscribe_injections(self) -> None:

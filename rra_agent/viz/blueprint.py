@@ -146,7 +146,7 @@ def build(layout: Layout) -> Any:
             plot(
                 name="Altitude against its target (m)",
                 origin="/vehicle",
-                contents=["/vehicle/altitude", "/vehicle/altitude_target"],
+                contents=["/vehicle/altitude", "/vehicle/altitude_target", "/vehicle/injections"],
             )
         )
         right.append(
@@ -159,11 +159,13 @@ def build(layout: Layout) -> Any:
         plot(name=_unit(n, u), origin=ctx(n), contents=[ctx(n)]) for n, u in layout.measurements
     ]
     lanes: list[Any] = []
-    if layout.text_measurements or layout.choices:
+    if layout.text_measurements or layout.choices or layout.vehicle:
         groups = [group for group, _ in layout.choices]
         title = "Selected " + ", ".join(groups)
         if layout.text_measurements:
             title = ", ".join(layout.text_measurements) + " and s" + title[1:]
+        if layout.vehicle:  # the faults the simulator was given (`Logger.injection`)
+            title = f"{title} and faults injected" if groups else "Faults injected"
         lanes.append(
             rrb.StateTimelineView(
                 name=title,
@@ -176,6 +178,7 @@ def build(layout: Layout) -> Any:
                 contents=[
                     *(ctx(n) for n in layout.text_measurements),
                     *(choice(group) for group in groups),
+                    *(["/injections"] if layout.vehicle else []),
                 ],
             )
         )
@@ -200,6 +203,9 @@ def build(layout: Layout) -> Any:
     shares = [3.0 if isinstance(v, rrb.StateTimelineView) else 2.0 for v in right]
     if layout.vehicle:
         shares[0] = 3.0  # the altitude
+    # The phases' legend has six entries (decide, deliver, plan, switch, execute, total): at
+    # a share of 2 of a 1000 px window it was cut after the fifth, hiding "total".
+    shares[-1] = 3.0
     events = rrb.TextLogView(
         name="Adaptation events",
         origin="/",

@@ -49,6 +49,9 @@ Entity tree (names are escaped path parts)::
     /world/vehicle/thrust         Arrows3D (body frame): one per rotor, length ~ thrust simulator
     /world/trajectory             LineStrips3D: the path flown so far (world frame)     simulator
     /vehicle/altitude             Scalars (and /vehicle/altitude_target)                simulator
+    /vehicle/injections           Scalars drawn as markers: the altitude at each fault  simulator
+                                  injected (`injection`)
+    /injections                   StateChange: the last fault injected (a lane)         simulator
     /vehicle/motors/<quantity>    Scalars, one series per motor (m1, m2, ...)           simulator
     /map/...                      2D floor map (static) and /map/robot, /map/path       robot driver
                                   (`robot_pose_2d`)
@@ -715,6 +718,32 @@ class Logger:
         self._push("/vehicle/altitude", float(z), sim_time, wall_time)
         if target is not None:
             self._push("/vehicle/altitude_target", float(target), sim_time, wall_time)
+
+    @_safe
+    def injection(
+        self,
+        detail: str,
+        *,
+        sim_time: float | None = None,
+        wall_time: float | None = None,
+        altitude: float | None = None,
+    ) -> None:
+        """A fault injected (``detail``: ``break_motor motor=2``): a WARN line of ``/events``,
+        the ``/injections`` lane changing to it and, given the ``altitude`` then, a marker on
+        the altitude plot (``/vehicle/injections``)."""
+        rr = self.rr
+        self._at(sim_time, wall_time)
+        self.rec.log("/events", rr.TextLog(f"injection: {detail}", level="WARN"))
+        self.rec.log("/injections", rr.StateChange(state=detail))
+        if altitude is None:
+            return
+        if "/vehicle/injections" not in self._named:
+            self._named.add("/vehicle/injections")
+            marker = rr.SeriesPoints(
+                names="fault", colors=(220, 30, 30), markers="cross", marker_sizes=8.0
+            )
+            self.rec.log("/vehicle/injections", marker, static=True)
+        self.rec.log("/vehicle/injections", rr.Scalars(float(altitude)))
 
     @_safe
     def motors(

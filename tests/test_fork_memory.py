@@ -1,0 +1,90 @@
+"""What a process forked by the fork server inherits instead of making again (each thing it
+makes writes to, and so copies, pages of the fork server's memory: docs/performance.md,
+*tools/bench_memory.py*): the allocator's pools filled before the fork; an engine's parsed
+command line, initial CV values and compiled rules. In process: nothing is forked here."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rra_agent.core import adaptation
+from rra_agent.deployment import _prepared, deploy, prepare
+from rra_agent.engines import launch
+from rra_agent.engines import resolution as resolution_engine
+from rra_agent.host import forkserver
+
+OBJECT_STORING = Path(__file__).parents[1] / "scenarios" / "object_storing"
+
+
+def test_arguments_parsed_ahead_are_handed_over_as_a_copy(monkeypatch):
+    argv = ["--package", "pkg", "--retry-after", "2.5", "--name", "resolution-a"]
+    built: list[str] = []
+
+    def arguments() -> argparse.ArgumentParser:
+        built.append("parser")
+        return resolution_engine.arguments()
+
+    monkeypatch.setattr(launch, "_parsed", {})
+    launch._parse_ahead(arguments, argv)
+    assert built == ["parser"]
+    first = launch.parse_engine_args(arguments, argv)
+    second = launch.parse_engine_args(arguments, argv)
+    assert built == ["parser"]  # no parser built for either: parsed ahead
+    assert first == second == resolution_engine.arguments().parse_args(argv)
+    assert first is not second  # each engine gets its own copy
+    first.retry_after = 9.0
+    assert launch.parse_engine_args(arguments, argv).retry_after == 2.5
+    # Other arguments are parsed as they come.
+    assert launch.parse_engine_args(arguments, [*argv, "--start-timeout", "3"]).start_timeout == 3
+    assert built == ["parser", "parser"]
+
+
+def test_arguments_that_do_not_parse_are_left_to_the_engine(monkeypatch, capsys):
+    monkeypatch.setattr(launch, "_parsed", {})
+    launch._parse_ahead(resolution_engine.arguments, ["--no-such-option"])
+    assert launch._parsed == {}
+    assert capsys.readouterr().err == ""  # the engine prints the error, in its own log
+
+
+def test_the_initial_cv_values_are_computed_once_per_prepared_deployment(monkeypatch):
+    built: list[int] = []
+    real = adaptation.AdaptationEngine.__init__
+
+    def counting(self, *args, **kwargs):
+        built.append(1)
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(adaptation.AdaptationEngine, "__init__", counting)
+    try:
+        dep = prepare(OBJECT_STORING)
+        assert built == [1]  # by prepare, in the fork server
+        cv = deploy(OBJECT_STORING).initial_cv()
+        assert built == [1] and cv and cv == dep.initial_cv()
+        cv.clear()  # a caller's copy
+        assert dep.initial_cv()
+    finally:
+        _prepared.clear()
+
+
+def test_the_rules_are_compiled_once_per_source():
+    dep = deploy(OBJECT_STORING)
+    pkg = dep.package
+    assert pkg.adaptation is not None
+    adaptation._compiled.cache_clear()
+    for _ in range(3):
+        adaptation.AdaptationEngine(pkg.features, dep.selection, pkg.adaptation)
+    info = adaptation._compiled.cache_info()
+    assert (info.misses, info.hits) == (1, 2)
+
+
+def test_the_allocators_free_blocks_are_read_and_filled():
+    """`fill_pools` reads CPython's allocator statistics (32 block sizes of 16 to 512 bytes)
+    and fills the free blocks of its partly used pools (of 48 bytes and more: a bytes
+    object's smallest block), so a forked child's first objects do not land in them."""
+    before = forkserver._pool_vacancies()
+    assert sorted(before) == list(range(16, 513, 16))
+    forkserver.fill_pools()
+    after = forkserver._pool_vacancies()
+    # What is left free is the fillers' own newest pools (and their list), not the old ones.
+    assert sum(after[s] for s in after if s >= 48) < sum(before[s] for s in before if s >= 48)

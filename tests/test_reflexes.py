@@ -85,9 +85,10 @@ class Seen:
             msg = codec.decode(sample.payload.to_bytes())
         except (msgspec.DecodeError, msgspec.ValidationError):
             return
-        if isinstance(msg, m.Measurement):
+        # Only the engines' own: --hostile forges selections (fenced by no live leader).
+        if isinstance(msg, m.Measurement) and "plant.out" in msg.sources:
             self.level.append(msg)
-        elif isinstance(msg, m.Selection):
+        elif isinstance(msg, m.Selection) and msg.fence and msg.fence.leader.startswith("adapt"):
             self.selections.append(msg)
 
     def decided_after_negative_level(self) -> m.Selection | None:
@@ -162,7 +163,7 @@ def test_a_reflex_fires_and_the_engines_confirm_it(system) -> None:
     assert "reflex      Fallback in plant: +Backup, -Main (armed)" in shown
     set_level(sys_, -1.0)
     [event] = wait_until(lambda: events.of("reflex"), 30, "the reflex reported")
-    assert (event.outcome, event.node, event.context) == ("ok", "plant", {"Level": -1.0})
+    assert (event.outcome, event.node, event.context) == ("ok", "plant", {"Level": -1.0}), event
     assert "reflex Fallback fired in plant at" in event.message
     assert "the engines decided +Backup, -Main and confirmed it at" in event.message
     assert 0 < event.durations["confirm"] < 5.0
@@ -241,7 +242,7 @@ def test_an_unconfirmed_reflex_is_rolled_back(system) -> None:
         set_level(sys_, -1.0)
         [event] = wait_until(lambda: events.of("reflex"), 30, "the reflex reported")
         assert event.outcome == "rolled_back"
-        assert "not confirmed (not confirmed within 300 ms): rolled back" in event.message
+        assert "not confirmed (not confirmed within 1000 ms): rolled back" in event.message
         assert cmd_keys(sys_) == [MAIN]  # back to what the engines gave it
     finally:
         for pid in frozen:

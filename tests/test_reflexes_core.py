@@ -440,3 +440,18 @@ def test_rra_status_lists_the_installed_reflexes_in_100_columns() -> None:
     many = {**record, "nodes": [f"node_with_a_long_name_{i}" for i in range(6)]}
     lines = reflex_lines({"reflexes": {"installed": [many]}})
     assert len(lines) > 1 and all(len(x) <= WIDTH for x in lines)
+
+
+def test_no_reflexes_without_an_adaptation_engine_to_confirm_them() -> None:
+    from rra_agent.cli.up import engine_specs
+
+    dep = deploy(PKG)
+
+    def resolution_cmd(**kw: Any) -> list[str]:
+        specs = engine_specs(dep, [], Path("/tmp/run"), "local", **kw)
+        [spec] = [s for s in specs if s.name.startswith("resolution")][:1]
+        return list(spec.implementation.command)
+
+    assert "--no-reflexes" not in resolution_cmd(adaptation=True)
+    assert "--no-reflexes" in resolution_cmd(adaptation=False)
+    assert "--no-reflexes" in resolution_cmd(adaptation=True, reflexes=False)

@@ -119,7 +119,9 @@ def engine_specs(
             *select,
             "--run-dir",
             str(run_dir),
-            *(["--no-reflexes"] if engine == "resolution" and not reflexes else []),
+            # No Adaptation Engine, no decision to confirm a reflex with: none is installed.
+            *(["--no-reflexes"] if engine == "resolution" and not (reflexes and adaptation)
+              else []),
         ]
         specs += [
             m.NodeSpec(

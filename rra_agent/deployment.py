@@ -24,6 +24,7 @@ from rra_agent.core.features import complete_deployment
 from rra_agent.core.resolution import resolve_deployment
 from rra_agent.errors import RraError
 from rra_agent.models.system import SystemModel
+from rra_agent.package.bundle import ModelBundle, bundle_of
 from rra_agent.package.contents import SystemPackage
 from rra_agent.package.loader import load_package, package_root
 
@@ -33,6 +34,14 @@ class Deployment:
     package: SystemPackage
     selection: frozenset[str]
     configured: SystemModel
+    #: The package's model files as they were loaded, and their digest (the *models
+    #: version*: `rra_agent.package.bundle`); None when a model file cannot be bundled.
+    bundle: ModelBundle | None = None
+
+    @property
+    def models(self) -> str:
+        """The digest of the models this deployment runs ("" when unknown)."""
+        return self.bundle.digest if self.bundle is not None else ""
 
     @property
     def system(self) -> str:
@@ -137,6 +146,18 @@ def _key(path: str | Path, names: Sequence[str]) -> tuple[Path, tuple[str, ...]]
 
 def _deploy(path: str | Path, names: Sequence[str]) -> Deployment:
     pkg = load_package(path)
+    try:
+        bundle: ModelBundle | None = bundle_of(pkg)
+    except RraError:
+        bundle = None  # a model file outside the package folder: not recorded, not reloadable
+    return deploy_package(pkg, names, bundle)
+
+
+def deploy_package(
+    pkg: SystemPackage, names: Sequence[str], bundle: ModelBundle | None = None
+) -> Deployment:
+    """Complete the deployment-time selection (``names``, default the manifest's) and resolve
+    a loaded package (a reload: the models of ``bundle``)."""
     selection = complete_deployment(pkg.features, list(names) or pkg.manifest.default_selection)
     configured = resolve_deployment(pkg.system, pkg.deployment, pkg.features, selection)
-    return Deployment(pkg, selection, configured)
+    return Deployment(pkg, selection, configured, bundle)

@@ -19,15 +19,18 @@ ROOT = Path(__file__).resolve().parents[1] / "rra_agent"
 #: Bottom first. A module's floor is that of the longest prefix listed.
 FLOORS: list[tuple[str, ...]] = [
     ("rra_agent.errors", "rra_agent.trace", "rra_agent._compat", "rra_agent.text"),
+    # the rmw_zenoh wire layer: a library of its own (it imports nothing of rra-agent but its
+    # errors), so that the models, their validation, the nodes and the engines may all use it
+    ("rra_agent.ros2",),
     ("rra_agent.models", "rra_agent.library"),
     ("rra_agent.dsl",),
     ("rra_agent.package",),
     ("rra_agent.core",),
-    ("rra_agent.deployment",),
+    ("rra_agent.deployment", "rra_agent.model_changes"),
     ("rra_agent.bus",),
-    ("rra_agent.ros2",),
     ("rra_agent.node",),
     ("rra_agent.viz",),
+    ("rra_agent.record",),
     ("rra_agent.security", "rra_agent.engines"),
     ("rra_agent.host",),
     ("rra_agent.nodes", "rra_agent.sim"),

@@ -42,10 +42,8 @@ def test_a_measurement_computed_before_leading_is_published_on_taking_the_lead(
     proc.publishers = {s.m.name: Publisher(sent) for s in proc.core.specs}  # type: ignore[misc]
     fix = {"seq": 1, "satellites": 7, "indoor": False, "speed": 0.5}
     # What the Zenoh callback keeps: the sample decoded (and checked) as a Fix.
-    proc._pending["gnss_receiver.fix"] = (
-        proc.core.decode("gnss_receiver.fix", msgspec.msgpack.encode(fix)),
-        1.0,
-    )
+    raw = msgspec.msgpack.encode(fix)
+    proc._pending["gnss_receiver.fix"] = (proc.core.decode("gnss_receiver.fix", raw), 1.0, raw)
     proc._process()  # the receiver's first fix, while the election runs: computed, not sent
     assert sent == [] and set(proc.latest) == {"Satellites", "Indoor", "Speed"}
     proc.election = SimpleNamespace(leading=True)  # type: ignore[assignment]
@@ -76,8 +74,9 @@ def test_an_unchanged_measurement_is_sent_again_only_to_stay_fresh(
     def fix(seq: int, satellites: int) -> list[tuple[str, object]]:
         sent.clear()
         sample = {"seq": seq, "satellites": satellites, "indoor": False, "speed": 0.5}
-        data = proc.core.decode("gnss_receiver.fix", msgspec.msgpack.encode(sample))
-        proc._pending["gnss_receiver.fix"] = (data, now[0])
+        raw = msgspec.msgpack.encode(sample)
+        data = proc.core.decode("gnss_receiver.fix", raw)
+        proc._pending["gnss_receiver.fix"] = (data, now[0], raw)
         proc._process()
         return [(s.name, s.value) for s in sent]
 

@@ -187,8 +187,10 @@ def test_field_paths() -> None:
 
 
 @pytest.mark.parametrize(("path", "match"), [
-    ("percent", "has no field 'percent' .*percentage"),
-    ("header.stamp.secs", r"'header.stamp.secs' \(builtin_interfaces/msg/Time has: sec, nanosec"),
+    ("percent", "has no field 'percent' \\(did you mean 'percentage'\\? .*percentage"),
+    ("header.stamp.secs",
+     r"'header.stamp.secs' \(did you mean 'sec'\? builtin_interfaces/msg/Time has: sec, nano"),
+    ("header.xyzzy", r"'header.xyzzy' \(std_msgs/msg/Header has: stamp, frame_id"),
     ("percentage.x", "percentage is float32, it has no field 'x'"),
     ("cell_voltage.x", r"cell_voltage is float32\[\], it has no field 'x'"),
 ])

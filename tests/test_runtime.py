@@ -336,7 +336,7 @@ def test_rra_param_prints_and_sets_a_running_nodes_parameters(system, bus):
     assert rra_param("source", "value=9").returncode == 0
     sys_.wait(lambda s: "filtered" in s["engine"]["running"], "the swap after rra param")
     bad = rra_param("nosuch", "x=1")
-    assert bad.returncode == 1 and "no component 'nosuch'" in bad.stderr
+    assert bad.returncode == 1 and "no node 'nosuch'" in bad.stderr
     assert "Traceback" not in bad.stderr
     bounded = rra_param("source", "rate_hz=x")
     assert bounded.returncode == 1 and "expected float" in bounded.stderr

@@ -2,7 +2,7 @@
 link and the access control generated from the model, on loopback. The operator's tools work
 through the engines; a process without a certificate cannot join; a node identity cannot call
 host control or publish a forged selection; an operator cannot forge a selection either; none
-of it has any effect on the running system."""
+of it has any effect on the running system. The operator may override a measurement."""
 
 from __future__ import annotations
 
@@ -73,6 +73,19 @@ def test_the_operator_runs_a_secure_system_through_the_engines(secure, procs):
     assert status.returncode == 0 and "filtered" in status.stdout, status.stderr
     param = rra("param", *who, "source")
     assert param.returncode == 0 and "value = 7.0" in param.stdout, param.stderr
+    # The operator may override a measurement (issue 24): the rules follow it, rra why says
+    # so through the access control, and NAME=auto gives the computed value back.
+    out = rra("inject", "measurement", "Level=1", "--for", "60s", *who)
+    assert out.returncode == 0 and out.stdout.startswith("Level = 1.0 (override)"), out.stderr
+    with operator(endpoint, certs) as client:
+        wait_until(lambda: "direct" in (gather(client)["engine"] or {}).get("running", {}),
+                   30, "Direct, from the override")  # fmt: skip
+        why = rra("why", "Direct", *who)
+        assert "by rule PathRule: activate_feature(Direct)" in why.stdout, why.stderr
+        assert "reading Level = 1.0 (override" in why.stdout, why.stdout
+        assert rra("inject", "measurement", "Level=auto", *who).returncode == 0
+        wait_until(lambda: "filtered" in (gather(client)["engine"] or {}).get("running", {}),
+                   30, "Filtered again, the override ended")  # fmt: skip
     # No certificate, no bus.
     plain = rra("status", "--system", "relay_system", "--connect", endpoint)
     assert plain.returncode != 0 and "Traceback" not in plain.stderr

@@ -478,7 +478,7 @@ def test_errors_of_every_file_are_collected(tmp_path: Path) -> None:
     assert heads == [
         f"{sys_at}: unknown field 'hots' (did you mean 'host'? known: binding, container,"
         " description, host, implementation, implementations, name, optional, parameters,"
-        " ports, scheduling, supervision)",
+        " ports, ros2, scheduling, supervision)",
         f"{root / 'deployment.yaml'}: no such file (the deployment model)",
         f"{rt_at}: Invalid enum value 'stop'",
     ]

@@ -19,8 +19,17 @@ import pytest
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.why import change_lines
 from rra_agent.viz import recording
-from rra_agent.viz.rerun_log import ENV_VAR, Every, RerunConfig, open_logger, viewer_reachable
+from rra_agent.viz.rerun_log import (
+    ENV_VAR,
+    RULES_WIDTH,
+    Every,
+    RerunConfig,
+    open_logger,
+    rule_rows,
+    viewer_reachable,
+)
 
 DATA = Path(__file__).parent / "data" / "relay_system"
 ROTORS = [(0.2, 0.2, 0.0), (-0.2, 0.2, 0.0), (-0.2, -0.2, 0.0), (0.2, -0.2, 0.0)]
@@ -305,3 +314,24 @@ def test_connect_mode_streams_to_a_viewer(procs, tmp_path):
     wait_until(lambda: "/context/Level" in recording.entity_paths(saved), 10, "the data")
     viewer.terminate()  # SIGTERM: SIGINT may be ignored when the tests run in the background
     viewer.wait(10)
+
+
+def test_the_rules_rows_carry_the_whole_cause_in_rows_the_events_view_shows_whole():
+    """The events view shows about 72 characters of a row's body and one line of it: the
+    cause of a selection goes in rows no longer than that, and none of it is lost."""
+    fired = m.FiredRule(rule="SafetyZone", action="activate_feature(HumanZone)",
+                        reads={"HumanDistance": 1.0}, values={"HumanDistance": 0.8})  # fmt: skip
+    lost = m.Overruled(rule="Localisation", action="activate_feature(NormalZone)", wants="on",
+                       why="later_rule", detail="rule SafetyZone, written later, wins (a "
+                       "run-time conflict in rule set Zones, priority 3 against 1)")  # fmt: skip
+    why = [
+        m.Why(target="HumanZone", kind="feature", value="on", reason="rule", by=[fired],
+              overruled=[lost]),
+        m.Why(target="NormalZone", kind="feature", value="off", reason="rule", by=[fired]),
+    ]  # fmt: skip
+    rows = rule_rows(why)
+    assert rows and all(len(r) <= RULES_WIDTH for r in rows), rows
+    assert rows[0].startswith("selection +HumanZone -NormalZone by SafetyZone")
+    words = " ".join(" ".join(change_lines(why)).split())
+    assert " ".join(" ".join(rows).split()) == "selection " + words.replace("   ", " ")
+    assert any(r.startswith("  overruled Localisation") for r in rows)

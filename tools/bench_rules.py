@@ -13,10 +13,17 @@ Two models:
   random values (the worst case: many conditions and so many features flip every tick).
 
 Each line also gives the tick time without `apply_requests` (rra_agent.core.features), which
-turns the fired requests into a valid selection: the rest is this module's own cost.
+turns the fired requests into a valid selection: the rest is this module's own cost. The
+lines marked "explained" tick as the Adaptation Engine leader does, with ``explain=True``:
+each change of the selection or of a CV value also names the action that made it, what it
+read and what it overruled (`TickResult.why`).
 
-Run: ``.venv/bin/python tools/bench_rules.py [--ticks N] [--seed S]``. Targets on the 2-core
-reference machine: Fig. 5 <= 20 us, 1000 rules <= 1 ms.
+``--paired``: what explaining costs, on a busy machine too: a plain and an explaining engine
+tick the same samples, interleaved (which goes first alternates), timed in thread CPU time
+(preemption by other processes is not counted); median and p99 of each and their ratio.
+
+Run: ``.venv/bin/python tools/bench_rules.py [--ticks N] [--seed S] [--paired]``. Targets on
+the 2-core reference machine: Fig. 5 <= 20 us, 1000 rules <= 1 ms.
 """
 
 from __future__ import annotations
@@ -26,7 +33,9 @@ import random
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -52,11 +61,16 @@ def percentiles(samples_ns: list[int]) -> tuple[float, float]:
 
 
 # ---- Fig. 5 -------------------------------------------------------------------------------
-def fig5(ticks: int) -> dict[str, tuple[float, ...]]:
+def fig5_model() -> tuple[FeatureModel, Any]:
+    """The object-storing feature model and rules."""
     pkg = ROOT / "scenarios" / "object_storing"
     fm = load_uvl(pkg / "features.uvl")
     meas = load_yaml(pkg / "measurements.yaml", MeasurementsModel)[0]
-    model = load_rules(pkg / "adaptation.rra", fm, meas)
+    return fm, load_rules(pkg / "adaptation.rra", fm, meas)
+
+
+def fig5_vectors(ticks: int) -> tuple[list[dict], list[dict]]:
+    """Samples of a steady context, and of one that switches every tick."""
     contexts = [
         (loc, batt, dist, mat)
         for loc in ROOMS
@@ -77,12 +91,21 @@ def fig5(ticks: int) -> dict[str, tuple[float, ...]]:
 
     steady = [vector(i, contexts[5]) for i in range(ticks)]
     switching = [vector(i, contexts[i % len(contexts)]) for i in range(ticks)]
-    return {
-        "Fig. 5, steady context": run_split(AdaptationEngine(fm, {"Manipulation"}, model), steady),
-        "Fig. 5, context switching every tick": run_split(
-            AdaptationEngine(fm, {"Manipulation"}, model), switching
-        ),
-    }
+    return steady, switching
+
+
+def fig5(ticks: int) -> dict[str, tuple[float, ...]]:
+    fm, model = fig5_model()
+    steady, switching = fig5_vectors(ticks)
+    out = {}
+    for explain, tag in ((False, ""), (True, ", explained")):
+        engine = AdaptationEngine(fm, {"Manipulation"}, model)
+        out[f"Fig. 5, steady context{tag}"] = run_split(engine, steady, explain=explain)
+        engine = AdaptationEngine(fm, {"Manipulation"}, model)
+        out[f"Fig. 5, context switching every tick{tag}"] = run_split(
+            engine, switching, explain=explain
+        )
+    return out
 
 
 # ---- generated model ------------------------------------------------------------------------
@@ -264,7 +287,7 @@ class _Timed:
 
 
 def run_split(
-    engine: AdaptationEngine, vectors: list[dict], warmup: int = 100
+    engine: AdaptationEngine, vectors: list[dict], warmup: int = 100, *, explain: bool = False
 ) -> tuple[float, ...]:
     """Median and p99 of the tick, and median of the tick without apply_requests."""
     timer = _Timed()
@@ -276,7 +299,7 @@ def run_split(
             now += 0.01
             timer.spent = 0
             t0 = time.perf_counter_ns()
-            engine.tick(now, vector)
+            engine.tick(now, vector, explain=explain)
             dt = time.perf_counter_ns() - t0
             if i >= warmup:
                 total.append(dt)
@@ -307,19 +330,67 @@ def generated(ticks: int, seed: int) -> dict[str, tuple[float, ...]]:
         f"({len(found)} conflicts)"
     )
     out = {}
-    for drift, label in ((True, "drifting values"), (False, "random jumps")):
-        vectors = measurement_stream(random.Random(seed + 1), ticks, drift)
-        out[f"{N_RULES} rules, 20/{N_MEAS} measurements new per tick, {label}"] = run_split(
-            AdaptationEngine(fm, (), model), vectors
-        )
+    for explain, tag in ((False, ""), (True, ", explained")):
+        for drift, label in ((True, "drifting values"), (False, "random jumps")):
+            vectors = measurement_stream(random.Random(seed + 1), ticks, drift)
+            name = f"{N_RULES} rules, 20/{N_MEAS} measurements new per tick, {label}{tag}"
+            out[name] = run_split(AdaptationEngine(fm, (), model), vectors, explain=explain)
     return out
+
+
+def paired_run(
+    make: Callable[[], AdaptationEngine], vectors: list[dict], warmup: int = 100
+) -> tuple[list[float], list[float]]:
+    """Thread CPU time (us) of each tick of a plain and an explaining engine on ``vectors``."""
+    engines = (make(), make())
+    times: tuple[list[float], list[float]] = ([], [])
+    now = 0.0
+    for i, vector in enumerate(vectors):
+        now += 0.01
+        for explain in (0, 1) if i % 2 else (1, 0):
+            t0 = time.thread_time_ns()
+            engines[explain].tick(now, vector, explain=bool(explain))
+            if i >= warmup:
+                times[explain].append((time.thread_time_ns() - t0) / 1000)
+    return times
+
+
+def paired(ticks: int, seed: int) -> None:
+    """Plain against explained, interleaved, in thread CPU time."""
+    fm, model = fig5_model()
+    steady, switching = fig5_vectors(ticks)
+    rng = random.Random(seed)
+    gfm = generated_feature_model(rng)
+    gmodel = parse_rules(generated_rules(rng), "<generated>.rra", gfm, generated_measurements())
+
+    def fig5_engine() -> AdaptationEngine:
+        return AdaptationEngine(fm, {"Manipulation"}, model)
+
+    cases: list[tuple[str, Callable[[], AdaptationEngine], list[dict]]] = [
+        ("Fig. 5, steady context", fig5_engine, steady),
+        ("Fig. 5, context switching every tick", fig5_engine, switching),
+    ]
+    for drift, label in ((True, "drifting values"), (False, "random jumps")):
+        vectors = measurement_stream(random.Random(seed + 1), max(ticks // 5, 500), drift)
+        cases.append((f"{N_RULES} rules, {label}", lambda: AdaptationEngine(gfm, (), gmodel),
+                      vectors))  # fmt: skip
+    print(f"{'thread CPU time, us':<40} {'plain':>17} {'explained':>17}  ratio of medians")
+    for name, make, vectors in cases:
+        plain, explained = (sorted(t) for t in paired_run(make, vectors))
+        p, e = statistics.median(plain), statistics.median(explained)
+        print(f"{name:<40} {p:8.1f} / {plain[int(len(plain) * 0.99)]:6.1f} "
+              f"{e:8.1f} / {explained[int(len(explained) * 0.99)]:6.1f}  {e / p:.3f}")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--ticks", type=int, default=5000)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--paired", action="store_true", help="plain against explained")
     args = parser.parse_args(argv)
+    if args.paired:
+        paired(args.ticks, args.seed)
+        return 0
     results: dict[str, tuple[float, ...]] = dict(fig5(args.ticks))
     results.update(generated(max(args.ticks // 5, 500), args.seed))
     width = max(len(k) for k in results)

@@ -10,7 +10,10 @@ has seen; payloads over their key family's limit on every family (data, ctx, sel
 events, state, injections) and queries over it to every node, host and engine control
 endpoint (at most one every 2 s: the routers drop them, the network still carries them);
 selections forged with a fence no live leader holds, naming unknown
-features and CV values of 1e6; node requests with parameters out of their bounds, of the
+features and CV values of 1e6; operators' measurement overrides forged on every ctx key it
+has seen (an override without the monitor leader's fence, or with one no leader holds) and
+override requests to the monitor that it refuses (an unknown measurement, a duration out of
+range); node requests with parameters out of their bounds, of the
 wrong type or unknown; malformed queries to every node, host and engine control endpoint;
 host requests the model does not allow (an undeclared command, a declared-looking one with
 injected ``PYTHONWARNINGS``/``BROWSER`` variables, a node name escaping the log folder, a
@@ -61,6 +64,7 @@ FORGED_DATA.append(msgspec.msgpack.encode({"seq": 1, "value": 9.0, "level": 9.0}
 #: Seconds between two payloads over a family's limit.
 OVERSIZED_EVERY = 2.0
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
+_CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 #: Families whose keys are asked (queries), not put to.
 QUERIED = ("node_ctl", "host_ctl", "engine_ctl")
 _ANY = m.Codec[Any](Any)
@@ -150,6 +154,29 @@ class Hostile:
         )  # fmt: skip
         self.session.put(self.keys.selection, _SEL.encode(msg))
 
+    def forged_override(self) -> None:
+        """A plausible value of a measurement it has seen, marked as an operator's override
+        but without the live monitor leader's fence."""
+        with self.lock:
+            ctx = sorted(k for k in self.topics if "/ctx/" in k)
+        if not ctx:
+            return
+        key = self.rng.choice(ctx)
+        fence = self.rng.choice([None, m.Fence(epoch=10**9, leader="monitor-a")])
+        msg = m.Measurement(name=key.rsplit("/", 1)[-1], value=9.0, stamp=time.time(),
+                            override="mallory", until=time.time() + 60, fence=fence)  # fmt: skip
+        self.session.put(key, _CTX.encode(msg))
+
+    def bad_override(self) -> None:
+        """Override requests the monitor refuses: an unknown name, a duration out of range."""
+        bad = {"t": "override_measurement", "name": "Level", "value": 9}
+        request = self.rng.choice([
+            _ANY.encode(m.OverrideMeasurement(name="NoSuchMeasurement", value=1, duration=5)),
+            _ANY.encode({**bad, "duration": -1}),
+            _ANY.encode({**bad, "duration": 1e9}),
+        ])  # fmt: skip
+        self.query(self.keys.engine_ctl("monitor"), request)
+
     def bad_params(self) -> None:
         if not self.nodes:
             return
@@ -201,6 +228,8 @@ class Hostile:
                 self.forged_data,
                 self.bad_host_requests,
                 self.oversized,
+                self.forged_override,
+                self.bad_override,
             ]
         )
         t0 = time.monotonic()

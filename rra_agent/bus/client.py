@@ -242,10 +242,60 @@ def wait_for_leader(client: BusClient, timeout: float) -> None:
     )
 
 
+def engine_request(
+    client: BusClient, role: str, request: m.EngineRequest, timeout: float = 5.0
+) -> dict[str, Any]:
+    """One request to the leader of an engine ``role`` (``monitor``, ``adaptation``,
+    ``resolution``), once its token has reached this session; its ``Ok`` result. `RraError`
+    in one line when no leader answers or it refuses (its reason)."""
+    what = {"monitor": "Context Monitor", "adaptation": "Adaptation Engine"}.get(
+        role, "Run-time Resolution Engine"
+    )
+    try:
+        wait_until(
+            lambda: list(
+                client.session.liveliness().get(_leader_token(client, role), timeout=0.5)
+            ),
+            timeout,
+            f"the {what}",
+            interval=0.02,
+        )
+    except TimeoutError:
+        raise RraError(
+            f"no {what} leads system {client.keys.system!r} on this bus "
+            "(right --system and --connect?)"
+        ) from None
+    try:
+        reply = client.request(client.keys.engine_ctl(role), request, timeout)
+    except NoReply:
+        raise RraError(
+            f"the {what} leader of system {client.keys.system!r} did not answer within "
+            f"{timeout:g} s (a busy machine? try again)"
+        ) from None
+    if isinstance(reply, m.Err):
+        raise RraError(reply.message)
+    return reply.result if isinstance(reply.result, dict) else {}
+
+
+def context(client: BusClient, timeout: float = 2.0) -> list[dict[str, Any]] | None:
+    """Every measurement with its newest value, as the Context Monitor leader publishes it
+    (``value``, ``stamp``, ``sources``, ``override``...; `rra_agent.engines.injection`), or
+    None when no monitor answers."""
+    try:
+        reply = client.request(client.keys.engine_ctl("monitor"), m.Status(), timeout)
+    except NoReply:
+        return None
+    if not isinstance(reply, m.Ok) or not isinstance(reply.result, dict):
+        return None
+    found = reply.result.get("context")
+    return found if isinstance(found, list) else None
+
+
 def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
-    """The engine's status, every host's nodes and every process's counters. An operator
-    with a certificate (``client.restricted``) may not call host or node control: its view
-    is the engine's (what the host agents last reported to it) and the engines' counters."""
+    """The engine's status, every host's nodes and every process's counters, and the
+    Context Monitor's measurements. An operator with a certificate (``client.restricted``)
+    may not call host or node control: its view is the engine's (what the host agents last
+    reported to it) and the engines' counters."""
     engine = engine_status(client, timeout)
     eng = engine or {}
     present = {
@@ -264,14 +314,32 @@ def gather(client: BusClient, timeout: float = 2.0) -> dict[str, Any]:
         nodes.append({"node": name, **st, "state": state})
     families = ("engine",) if client.restricted else ("node", "host")
     hosts = sorted({*eng.get("hosts", {}), *present})
-    return {
+    status = {
         "engine": engine,
         "nodes": nodes,
         # The model's hosts as the engine sees them (an unreachable one too), and any other.
         "hosts": hosts,
         "host_agents": _host_agents(client, hosts, present, unreachable, nodes, timeout),
         "stats": process_stats(client, timeout, families=families),
+        "context": context(client, timeout) if engine is not None else None,
     }
+    graph = ros2_graph(client, eng, timeout)
+    if graph is not None:
+        status["ros2"] = graph
+    return status
+
+
+def ros2_graph(client: BusClient, eng: dict[str, Any], timeout: float) -> dict[str, Any] | None:
+    """The ROS 2 graph of the system's domain (a package with ``ros2:``, as the engine's
+    status says), from the liveliness tokens alive now, asked from this tool's session:
+    every ROS 2 node, rra-agent's and the robot's, with its endpoints
+    (`rra_agent.ros2.graph.Graph.to_json`)."""
+    ros = eng.get("ros2")
+    if not isinstance(ros, dict) or not isinstance(ros.get("domain"), int):
+        return None
+    from rra_agent.ros2.graph import query_graph
+
+    return query_graph(client.session, ros["domain"], timeout=min(timeout, 1.0)).to_json()
 
 
 def _host_agents(

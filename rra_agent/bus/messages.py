@@ -14,7 +14,8 @@ Channels and their unions:
 - ``state/<role>``      `StateMessage`    = EngineState
 - ``node/<n>/ctl``      `NodeRequest` -> `Reply`
 - ``host/<h>/ctl``      `HostRequest` -> `Reply`
-- ``engine/<e>/ctl``    `EngineRequest` -> `Reply` (``ForceFeatures``: the Adaptation Engine's)
+- ``engine/<e>/ctl``    `EngineRequest` -> `Reply` (``ForceFeatures``, ``Explain``: the
+  Adaptation Engine's; ``Inject``, ``OverrideMeasurement``: the Context Monitor's)
 - ``inject/**``         `Injection`
 - ``reflex/<n>``        `ReflexMessage`   = ReflexFired
 
@@ -31,6 +32,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 import msgspec
 
 from rra_agent.models.system import Implementation, ParamType, Scheduling, Supervision
+from rra_agent.package.bundle import ModelBundle
 
 T = TypeVar("T")
 
@@ -75,6 +77,12 @@ class Measurement(Msg, tag="measurement"):
     stamp: float
     #: Send times of the source samples it was computed from, by ``component.port``.
     sources: dict[str, float] = {}
+    #: An operator's override (``rra inject measurement``): who set it ("": computed), until
+    #: when (wall clock), and the fence of the monitor leader that published it (an override
+    #: without its leader's fence is refused).
+    override: str = ""
+    until: float = 0.0
+    fence: Fence | None = None
 
 
 CtxMessage = Measurement
@@ -88,6 +96,41 @@ class FiredRule(Msg, tag="fired"):
     where: str = ""
     #: Measurements the rule read, with the stamps of the values it saw.
     reads: dict[str, float] = {}
+    #: ... and the values it saw.
+    values: dict[str, float | int | bool | str] = {}
+    #: Of those, the values an operator set (``rra inject measurement``): name -> who.
+    overrides: dict[str, str] = {}
+
+
+class Overruled(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A rule that fired wanting something else for a target, and why it did not prevail."""
+
+    rule: str
+    action: str
+    where: str = ""
+    #: ``on``/``off``, an alternative, or the CV value it computed.
+    wants: str = ""
+    #: ``priority``, ``later_rule``, ``operator``, ``nfr``, ``bounds``, ``unavailable``,
+    #: ``refused`` or ``waiting`` (`rra_agent.core.adaptation.Overruled`).
+    why: str
+    detail: str = ""
+
+
+class Why(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """Why a run-time feature or a CV attribute has its value: what changed it last."""
+
+    target: str
+    kind: Literal["feature", "cv"]
+    #: ``on``/``off``, or the CV value.
+    value: str
+    #: When that change was decided (nil: before the engine's first change of it).
+    since: float | None = None
+    #: ``rule``, ``nfr``, ``operator``, ``unavailable``, ``model``, ``default``, ``resumed``.
+    reason: str
+    #: The rules that made the change, with what they read.
+    by: list[FiredRule] = []
+    detail: str = ""
+    overruled: list[Overruled] = []
 
 
 class ConflictReport(Msg, tag="conflict"):
@@ -125,6 +168,7 @@ class Selection(Msg, tag="selection"):
     cv: dict[str, float] = {}
     #: True when the selection differs from the previous one (heartbeats repeat it unchanged).
     changed: bool = False
+    #: The rules that changed it (not every rule that fired), with what they read.
     cause: list[FiredRule] = []
     rejected: list[str] = []
     #: The Adaptation Engine leader that decided it (a selection from an older leader, or
@@ -134,6 +178,11 @@ class Selection(Msg, tag="selection"):
     forced: dict[str, bool] = {}
     #: The run-time conflicts in force (``state: started``).
     conflicts: list[ConflictReport] = []
+    #: Each feature and CV value this selection changes, and why (empty on heartbeats).
+    why: list[Why] = []
+    #: The digest of the models it was decided under (`ModelBundle.digest`): the Run-time
+    #: Resolution Engine refuses a selection made under other models than its own.
+    models: str = ""
 
 
 SelectionMessage = Selection | ConflictReport
@@ -158,6 +207,12 @@ class AdaptationEvent(Msg, tag="event"):
     selection: int | None = None
     #: Conflicts: the measurement values that made it.
     context: dict[str, float | int | bool | str] = {}
+    #: An adaptation: each feature and CV value it changed, and why (the selection's).
+    why: list[Why] = []
+    #: Who asked (``user@host``), for operators' requests (``injection``...).
+    operator: str = ""
+    #: ``injection``: what was injected.
+    injection: Inject | None = None
 
 
 class Failure(
@@ -226,6 +281,9 @@ class Claim(Msg, tag="claim"):
 class SetParams(Msg, tag="set_params"):
     params: dict[str, Any]
     fence: Fence | None = None
+    #: New declarations (type and bounds) of these parameters, taken before the values are
+    #: checked: a reload changed their bounds (``rra reload``).
+    decl: dict[str, ParamDecl] = {}
 
 
 class Rewire(Msg, tag="rewire"):
@@ -429,6 +487,30 @@ class PortSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     standby: list[str] = []
 
 
+class Ros2Spec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A node's ROS 2 side (docs/ros2.md), filled in by its host agent from its own copy of
+    the model: the system's ROS domain and distribution, the package's interface files on
+    this host, the node's ROS 2 name, and the ROS 2 type of each ROS 2 port.
+    ``executable``: the implementation is a ROS 2 executable (started with ``--ros-args``
+    and driven through its ROS 2 services), not a node of this protocol; ``lifecycle``,
+    ``rewire``, ``timeout``: the component's ``ros2`` section."""
+
+    domain: int = 0
+    distro: str = "jazzy"
+    interfaces: str | None = None
+    #: The system package's folder on this host: where an executable's command runs (its
+    #: ``cwd`` is relative to it).
+    folder: str | None = None
+    node: str
+    namespace: str = "/"
+    executable: bool = False
+    lifecycle: bool = False
+    rewire: Literal["relay", "restart"] = "relay"
+    timeout: Annotated[float, msgspec.Meta(gt=0.0)] = 1.0
+    #: Port -> its ROS 2 message type.
+    ports: dict[str, str] = {}
+
+
 class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
     """Everything a node process needs; passed as JSON in ``RRA_NODE_SPEC``."""
 
@@ -449,6 +531,8 @@ class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     path: list[str] = []
     #: The newest leader fence the host agent has accepted: the node refuses older ones.
     fence: Fence | None = None
+    #: Its ROS 2 side, if it has one (set by the host agent).
+    ros2: Ros2Spec | None = None
 
 
 # ---- host agent control -----------------------------------------------------------------
@@ -490,7 +574,27 @@ class ListNodes(Msg, tag="list_nodes"):
     pass
 
 
-HostRequest = StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
+class PrepareModels(Msg, tag="prepare_models"):
+    """From the Run-time Resolution Engine leader during a reload, to every engine replica
+    and host agent: load and check these models and hold them ready (nothing changes yet).
+    A host agent also admits what they add from now on (its catalog: both versions)."""
+
+    bundle: ModelBundle
+    fence: Fence | None = None
+
+
+class CommitModels(Msg, tag="commit_models"):
+    """From the Run-time Resolution Engine leader once it runs the models ``digest``: a
+    host agent keeps only their catalog."""
+
+    digest: str
+    fence: Fence | None = None
+
+
+HostRequest = (
+    StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
+    | PrepareModels | CommitModels
+)
 
 
 # ---- component containers (host agent -> its containers) ----------------------------------
@@ -524,6 +628,25 @@ class NodeBatch(Msg, tag="node_batch"):
 ContainerRequest = LoadNode | UnloadNode | NodeBatch | Ping | Stats | Describe
 
 
+# ---- scenario injections ----------------------------------------------------------------
+class Inject(Msg, tag="inject"):
+    """A fault or context change.
+
+    Example: ``{"t": "inject", "kind": "break_motor", "args": {"k": 2}}``. Sent to the
+    Context Monitor leader's control (``rra inject``), it is published on ``inject/<kind>``
+    and recorded as an ``injection`` event naming ``operator``.
+    """
+
+    kind: str
+    target: str = ""
+    args: dict[str, Any] = {}
+    stamp: float = 0.0
+    operator: str = ""
+
+
+Injection = Inject
+
+
 # ---- engine control ---------------------------------------------------------------------
 class Status(Msg, tag="status"):
     pass
@@ -538,6 +661,10 @@ class SetParam(Msg, tag="set_param"):
     node: str
     params: dict[str, Any] = {}
     reset: list[str] = []
+    #: Who asks (``user@host``); with ``injection`` the event is an ``injection`` (``rra
+    #: inject set_params``) rather than a ``param`` one.
+    operator: str = ""
+    injection: bool = False
 
 
 class GetState(Msg, tag="get_state"):
@@ -573,8 +700,63 @@ class Retry(Msg, tag="retry"):
     operator: str = ""
 
 
+class Explain(Msg, tag="explain"):
+    """Ask the Adaptation Engine leader why the run-time features and CV values are what
+    they are (``rra why``): ``Ok`` with ``{"why": [Why...]}`` for ``targets`` (empty: all),
+    and with ``reachable`` the run-time configurations its rules can reach from the current
+    one (``{"reachable": {...}}``)."""
+
+    targets: list[str] = []
+    reachable: bool = False
+
+
+class OverrideMeasurement(Msg, tag="override_measurement"):
+    """An operator makes the Context Monitor leader publish ``value`` for measurement
+    ``name`` instead of the computed one for ``duration`` seconds (``rra inject
+    measurement``); 0 ends an override at once. Refused for an unknown measurement or a value
+    its declaration does not admit."""
+
+    name: str
+    value: float | int | bool | str
+    duration: Annotated[float, msgspec.Meta(ge=0.0, le=86400.0)]
+    operator: str = ""
+
+
+class Reload(Msg, tag="reload"):
+    """An operator's edited models for the running system (``rra reload``), to the Run-time
+    Resolution Engine leader: checked (what cannot change live is refused, nothing changed),
+    prepared by every engine replica and host agent, then taken by all at once. ``base``: the
+    digest of the models the operator's diff was made against (refused if they changed
+    since). ``undo``: go back to the models before the last reload (no ``bundle``)."""
+
+    bundle: ModelBundle | None = None
+    base: str = ""
+    undo: bool = False
+    operator: str = ""
+
+
+class GetModels(Msg, tag="get_models"):
+    """The model files of one version (``digest``; empty: the current one), as a bundle."""
+
+    digest: str = ""
+
+
 EngineRequest = (
-    Status | Describe | Ping | Stats | SetParam | GetState | GetParams | ForceFeatures | Retry
+    Status
+    | Describe
+    | Ping
+    | Stats
+    | SetParam
+    | GetState
+    | GetParams
+    | ForceFeatures
+    | Retry
+    | Explain
+    | Inject
+    | OverrideMeasurement
+    | Reload
+    | GetModels
+    | PrepareModels
 )
 
 
@@ -631,6 +813,10 @@ class EngineState(Msg, tag="engine_state"):
     stamp: float = 0.0
     #: Reflexes installed in nodes (armed, or fired and not yet confirmed).
     reflexes: list[ReflexRecord] = []
+    #: The digest of the models the engines run (`ModelBundle.digest`), and those before
+    #: it, newest last (``rra reload --undo`` goes back to the last one).
+    models: str = ""
+    history: list[str] = []
 
 
 StateMessage = EngineState
@@ -675,22 +861,6 @@ class ReflexRecord(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unkn
     fired_by: list[str] = []
 
 
-# ---- scenario injections ----------------------------------------------------------------
-class Inject(Msg, tag="inject"):
-    """A fault or context change.
-
-    Example: ``{"t": "inject", "kind": "break_motor", "args": {"k": 2}}``.
-    """
-
-    kind: str
-    target: str = ""
-    args: dict[str, Any] = {}
-    stamp: float = 0.0
-
-
-Injection = Inject
-
-
 # ---- codecs -----------------------------------------------------------------------------
 class Codec(Generic[T]):
     """One reused encoder/decoder pair for one message union."""
@@ -716,8 +886,8 @@ def spec_digest(spec: NodeSpec) -> str:
     """What a node is configured to be (implementation, host, parameters, wiring, active),
     as a short hash: equal digests, equal configurations. The state to take over, the fence
     and the import path (each host derives it from its own copy of the package) are not
-    part of it."""
-    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[])
+    part of it, nor its ROS 2 side (each host derives it from its model, like the path)."""
+    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[], ros2=None)
     return _short_hash(fixed)
 
 

@@ -56,7 +56,7 @@ COMMANDS: dict[str, Command] = {
         lazy("rra_agent.cli.resolve:run"),
     ),
     "check": Command(
-        "static conflict analysis of the adaptation rules (exit 1 on a certain conflict)",
+        "static analysis of the rules: conflicts (exit 1 if certain), unreachable features",
         lambda p: _configure("rra_agent.cli.check:configure", p),
         lazy("rra_agent.cli.check:run"),
     ),
@@ -74,6 +74,21 @@ COMMANDS: dict[str, Command] = {
         "follow the adaptation events of a running system (or print an events.jsonl)",
         lambda p: _configure("rra_agent.cli.events:configure_events", p),
         lazy("rra_agent.cli.events:run_events"),
+    ),
+    "watch": Command(
+        "print measurements as they change (MEASUREMENT ...; none: all) until Ctrl-C",
+        lambda p: _configure("rra_agent.cli.watch:configure", p),
+        lazy("rra_agent.cli.watch:run"),
+    ),
+    "inject": Command(
+        "inject a fault, set parameters or override a measurement in a running system",
+        lambda p: _configure("rra_agent.cli.inject:configure", p),
+        lazy("rra_agent.cli.inject:run"),
+    ),
+    "why": Command(
+        "why the run-time features and CV values are what they are, and what can be reached",
+        lambda p: _configure("rra_agent.cli.why:configure", p),
+        lazy("rra_agent.cli.why:run"),
     ),
     "demo": Command(
         "the paper's evaluation: a quadcopter loses a motor, RRA swaps its controller",
@@ -109,6 +124,16 @@ COMMANDS: dict[str, Command] = {
         "run scenarios (*.scenario.yaml) headless and print the verdict of each expectation",
         lambda p: _configure("rra_agent.cli.test:configure", p),
         lazy("rra_agent.cli.test:run"),
+    ),
+    "replay": Command(
+        "re-run a recorded run's decisions offline (--package EDITED: what-if)",
+        lambda p: _configure("rra_agent.cli.replay:configure", p),
+        lazy("rra_agent.cli.replay:run"),
+    ),
+    "reload": Command(
+        "take edited models into the running system without restarting it (--undo)",
+        lambda p: _configure("rra_agent.cli.reload:configure", p),
+        lazy("rra_agent.cli.reload:run"),
     ),
     "certs": Command(
         "make the system CA and the mTLS certificates of every host and role",

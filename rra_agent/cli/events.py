@@ -18,6 +18,7 @@ from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import connect_system, engine_status
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
+from rra_agent.bus.why import change_lines
 from rra_agent.cli.common import WIDTH, add_system_argument
 from rra_agent.errors import RraError
 
@@ -101,7 +102,9 @@ def format_event(ev: m.AdaptationEvent | m.NodeState, *, wide: bool = True) -> s
             cause = "; ".join(f"{c.rule}: {c.action}" for c in ev.cause)
             dur = " ".join(f"{k}={v * 1e3:.1f}ms" for k, v in ev.durations.items())
             lines = [(f"{t} {ev.level.upper():<7} {ev.kind}: {ev.message}", " " * 21)]
-            if cause:
+            if ev.why:  # what changed, by which rule, reading what; what it overruled
+                lines += [(f"    {text}", " " * 8) for text in change_lines(ev.why)]
+            elif cause:
                 lines.append((f"    cause: {cause}", " " * 11))
             lines += [(f"    - {step}", " " * 6) for step in ev.plan]
             if dur:

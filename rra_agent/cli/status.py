@@ -2,8 +2,10 @@
 
 ``rra status`` asks the resolution engine for the current run-time selection and CV values,
 and every host agent for its nodes (host, state, pid, implementation, active flag, restarts);
-``--watch S`` redraws it every S seconds; the samples the Context Monitor refused are listed
-per source and reason at the end. ``rra events`` follows the adaptation events and
+the Context Monitor for every measurement's current value, age and source (an operator's
+override says so); ``--reachable`` adds the configurations the rules can reach (``rra
+why``); ``--watch S`` redraws it every S seconds; the samples the Context Monitor refused are
+listed per source and reason at the end. ``rra events`` follows the adaptation events and
 node-state transitions live (or prints a saved ``events.jsonl`` with ``--log``).
 """
 
@@ -20,8 +22,9 @@ import msgspec
 from rra_agent import _compat
 from rra_agent.bus import failure
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import connect_system, gather
+from rra_agent.bus.client import connect_system, engine_request, gather
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
+from rra_agent.bus.why import value_text
 from rra_agent.cli.common import WIDTH, add_system_argument, cut
 from rra_agent.errors import RraError
 
@@ -37,6 +40,11 @@ def configure_status(p: argparse.ArgumentParser) -> None:
     p.add_argument("--watch", type=float, metavar="S", help="refresh every S seconds")
     p.add_argument("--json", action="store_true", help="machine-readable output (everything)")
     p.add_argument(
+        "--reachable",
+        action="store_true",
+        help="also the run-time configurations the rules can reach from the current one",
+    )
+    p.add_argument(
         "--wide",
         action="store_true",
         help=f"the full table (each node's implementation), not cut to {WIDTH} columns",
@@ -50,10 +58,13 @@ def render(status: dict[str, Any], *, wide: bool = False) -> str:
     unless ``wide``."""
     sections = [
         _system_section(status.get("engine"), wide),
+        context_section(status, wide),
         _hosts_section(status, wide),
         _nodes_section(status, wide),
         _failures_section(status, wide),
         refused_section(status, wide),
+        reachable_section(status, wide),
+        ros2_section(status, wide),
     ]
     return "\n\n".join("\n".join(lines) for lines in sections if lines)
 
@@ -124,6 +135,52 @@ def effect_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:
     if eng.get("degraded"):
         lines.append("what was decided is not all in effect; see `rra events`, `rra retry`")
     return lines
+
+
+def context_section(status: dict[str, Any], wide: bool, now: float | None = None) -> list[str]:
+    """One row per measurement of the model: its current value, how old it is (since the
+    monitor computed it), and where it comes from (its source interfaces and how long ago
+    their sample was sent; what a derived one follows; an operator's override)."""
+    rows = status.get("context")
+    if rows is None:
+        return ["context     no Context Monitor answers"] if status.get("engine") else []
+    now = time.time() if now is None else now
+    lines = [f"{'MEASUREMENT':<20} {'VALUE':<20} {'AGE':>6}  FROM"]
+    for r in rows:
+        if "value" in r:
+            value = value_text(r["value"]) + (f" {r['unit']}" if r.get("unit") else "")
+            age = _age(now - float(r.get("stamp", now)))
+        else:
+            value, age = "-", "-"
+        origin = r.get("from", "")
+        if r.get("override"):
+            value += " OVERRIDE"
+            left = max(0.0, float(r.get("until", now)) - now)
+            origin = f"override by {r['override']}, {_age(left)} left"
+        elif r.get("sources"):
+            sent = max(float(t) for t in r["sources"].values())
+            origin += f" (sent {_age(now - sent)} ago)"
+        line = f"{cut(r['name'], 20, wide):<20} {cut(value, 20, wide):<20} {age:>6}  {origin}"
+        lines.append(cut(line, WIDTH, wide))
+    return lines
+
+
+def _age(seconds: float) -> str:
+    """``0.3s``, ``42s``, ``5m``, ``2h``: how long, in at most six columns."""
+    seconds = max(0.0, seconds)
+    if seconds < 10:
+        return f"{seconds:.1f}s"
+    if seconds < 600:
+        return f"{seconds:.0f}s"
+    return f"{seconds / 60:.0f}m" if seconds < 36000 else f"{seconds / 3600:.0f}h"
+
+
+def reachable_section(status: dict[str, Any], wide: bool) -> list[str]:
+    """``--reachable``: what the rules can reach from here (`rra why`'s section)."""
+    from rra_agent.cli.why import reachable_lines
+
+    found = status.get("reachable")
+    return reachable_lines(found, wide) if isinstance(found, dict) else []
 
 
 def _hosts_section(status: dict[str, Any], wide: bool) -> list[str]:
@@ -219,6 +276,17 @@ def refused_section(status: dict[str, Any], wide: bool = False) -> list[str]:
     return lines
 
 
+def ros2_section(status: dict[str, Any], wide: bool = False) -> list[str]:
+    """The ROS 2 graph of the system's domain (a package with ``ros2:``): each node and its
+    publishers, subscriptions, services and clients, one line each."""
+    graph = status.get("ros2")
+    if not graph:
+        return []
+    from rra_agent.ros2.graph import graph_lines
+
+    return graph_lines(graph, 10_000 if wide else WIDTH)
+
+
 def adaptation_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:
     """The features operators forced (``rra select``) and the run-time conflicts in force,
     as the Run-time Resolution Engine holds them (nothing when there are none)."""
@@ -286,6 +354,11 @@ def run_status(args: argparse.Namespace) -> int:
             if not status["hosts"] and status["engine"] is None:
                 raise RraError(
                     f"system {client.keys.system!r} stopped: no host agent or engine answers"
+                )
+            if args.reachable:
+                request = m.Explain(reachable=True)
+                status["reachable"] = engine_request(client, "adaptation", request).get(
+                    "reachable"
                 )
             if args.json:
                 print(msgspec.json.encode(status).decode(), flush=True)

@@ -82,6 +82,11 @@ def configure(p: argparse.ArgumentParser) -> None:
         help="never delegate a planned decision to a node (docs/architecture.md, Reflexes)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    p.add_argument(
+        "--no-record",
+        action="store_true",
+        help="do not record the run for `rra replay` (<run-dir>/record/, docs/recording.md)",
+    )
     add_wide_argument(p, "the banner and progress lines")
     # -- Rerun logging (rra_agent.viz) --
     p.add_argument(
@@ -103,9 +108,11 @@ def engine_specs(
     adaptation: bool,
     replicas: int = 2,
     reflexes: bool = True,
+    record: bool = True,
 ) -> list[m.NodeSpec]:
     """The engines as supervised processes (their command lines are their implementations)."""
     select = ["--select", ",".join(names)] if names else []
+    select += [] if record else ["--no-record"]
     specs = []
     for engine in ENGINES:
         if engine == "adaptation" and (not adaptation or dep.package.adaptation is None):
@@ -135,6 +142,21 @@ def engine_specs(
             for name in replica_names(engine, replicas)
         ]
     return specs
+
+
+def begin_record(dep: Deployment, run_dir: Path, host: str) -> bool:
+    """Begin the run's record (``<run-dir>/record/``: its models and what it runs); False
+    (with a line saying why) when the models cannot be recorded."""
+    from rra_agent.record.run import RunInfo, begin
+
+    if dep.bundle is None:
+        print("rra up: not recorded: a model file lies outside the package folder",
+              file=sys.stderr, flush=True)  # fmt: skip
+        return False
+    info = RunInfo(system=dep.system, deployment=sorted(dep.selection), started=time.time(),
+                   models=dep.models, host=host, package=str(dep.package.root))  # fmt: skip
+    begin(run_dir, info, dep.bundle)
+    return True
 
 
 def print_partitions(session: zenoh.Session, key: str) -> zenoh.Subscriber[None]:
@@ -234,11 +256,16 @@ def _run(
         return 2
     recording.attach_blueprint(rerun_config, dep.package)
     recording.export(rerun_config)
+    record = begin_record(dep, run_dir, args.host) if not args.no_record else False
     specs = engine_specs(
         dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas,
         reflexes=not args.no_reflexes,
+        record=record,
     )  # fmt: skip
-    catalog = Catalog(dep.configured, args.host, package_root=dep.package.root, default_host=True)
+    catalog = Catalog(
+        dep.configured, args.host, package_root=dep.package.root, default_host=True,
+        ros2=dep.package.manifest.ros2,
+    )
     catalog.add_builtins(specs)
     schedule_self(dep.package.manifest.agents.scheduling, "rra up")
     agent = HostAgent(
@@ -250,6 +277,7 @@ def _run(
         catalog=catalog,
         data_topics=topic_limits(dep.package.system),
         engines=True,
+        models=dep,
         **security(args, dep, args.host),
     )
     agent.observers.append(state_printer(quiet=args.quiet, wide=args.wide))
@@ -266,6 +294,10 @@ def _run(
             print_banner(args, dep, bus, agent, run_dir, keep)
 
     agent.run(on_ready=start_engines)
+    if record:
+        from rra_agent.record.run import seal
+
+        seal(run_dir)  # every engine has stopped: the record is whole
     if not args.quiet:
         print("rra up: all processes stopped", flush=True)
     # -- Rerun logging (rra_agent.viz): merge the processes' files, once all have exited --

@@ -29,10 +29,16 @@ Semantics (docs/rules.md has the full text):
   at least N ms after its last run; ``period 0 ms`` on ticks where a measurement it reads is
   new (its stamp changed, or it is named in ``changed``). A rule set runs as a whole when any
   of its rules is due. Every rule runs on the first tick.
+- Explanation (``tick(..., explain=True)``, `why`): each change of the selection and of a CV
+  value names the action that made it (`apply_requests` traces which request switched which
+  feature), the values it read, and the fired actions that wanted otherwise and why they did
+  not prevail (`Overruled`). Computed only for ticks that change something; `why` answers
+  for the current state (the last change, and what the rules want now).
 """
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -51,7 +57,7 @@ from rra_agent.core.conflicts import (
     ranked_variants,
     target_text,
 )
-from rra_agent.core.cv import clamp, cv_table
+from rra_agent.core.cv import CvAttribute, clamp, cv_table, limiting
 from rra_agent.core.features import (
     Request,
     apply_requests,
@@ -93,8 +99,10 @@ __all__ = [
     "AdaptationEngine",
     "ConflictRecord",
     "FiredRule",
+    "Overruled",
     "Rejected",
     "TickResult",
+    "Why",
 ]
 
 #: (value, stamp): a measurement sample as the engine receives it; stamps in seconds.
@@ -123,6 +131,8 @@ class Rejected(msgspec.Struct, frozen=True, kw_only=True):
     span: Span | None = None
     #: The feature it asked for is unavailable (an implementation it needs cannot run).
     unavailable: str = ""
+    #: It would have changed this feature, which an operator forced (``rra select``).
+    forced: str = ""
 
 
 class ConflictRecord(msgspec.Struct, frozen=True, kw_only=True):
@@ -135,6 +145,60 @@ class ConflictRecord(msgspec.Struct, frozen=True, kw_only=True):
     #: What the winner and the loser want (``on``/``off``, an alternative, a CV value);
     #: filled in for the conflicts in force (`TickResult.active`).
     values: tuple[str, ...] = ()
+
+
+#: Why a fired action did not prevail on a target (`Overruled.why`).
+OverruleReason = Literal[
+    "priority", "later_rule", "operator", "nfr", "bounds", "unavailable", "refused", "waiting"
+]
+#: What put a target in its state (`Why.reason`).
+WhyReason = Literal["rule", "nfr", "operator", "unavailable", "model", "default", "resumed"]
+
+
+class Overruled(msgspec.Struct, frozen=True, kw_only=True):
+    """A fired action that wanted something else for a target and did not prevail.
+
+    ``why``: ``priority`` (a rule of higher priority in its rule set), ``later_rule`` (a rule
+    written later: a run-time conflict), ``operator`` (a feature an operator forced),
+    ``nfr`` / ``bounds`` (the CV value it computed was clamped by an active NFR / into the
+    attribute's bounds), ``unavailable`` (an implementation the feature needs cannot run),
+    ``refused`` (the feature model does not allow it), ``waiting`` (it wants a change its
+    rule has not applied yet: not due, see `why`)."""
+
+    rule: str
+    action: str
+    span: Span | None = None
+    ruleset: str | None = None
+    #: What it wants: ``on``/``off``, an alternative, or the CV value it computed.
+    wants: str
+    why: OverruleReason
+    #: The same, for people (names the rule or NFR that prevailed).
+    detail: str = ""
+
+
+class Why(msgspec.Struct, frozen=True, kw_only=True):
+    """Why a run-time feature or a CV attribute has its value: what changed it last.
+
+    ``reason``: ``rule`` (the actions in ``by``), ``nfr`` (an NFR began or ceased to clamp a
+    CV: ``by`` names what selected or deselected its feature), ``operator`` (an operator's
+    forced feature), ``unavailable`` (left, or put in place of, an unavailable feature),
+    ``model`` (the feature model completed a change), ``default`` (so since the engine
+    started), ``resumed`` (so when the engine resumed from the running system)."""
+
+    #: The feature, or the CV attribute's key.
+    target: str
+    kind: Literal["feature", "cv"]
+    #: ``on``/``off``, or the CV value.
+    value: str
+    #: The tick that put it there (None: before this engine's first change of it).
+    since: float | None = None
+    reason: WhyReason
+    by: tuple[FiredRule, ...] = ()
+    #: The measurements ``by`` read: name -> (value, stamp), as the tick saw them.
+    reads: dict[str, tuple[Any, float]] = {}
+    detail: str = ""
+    #: The fired actions that wanted otherwise, and why they did not prevail.
+    overruled: tuple[Overruled, ...] = ()
 
 
 class TickResult(msgspec.Struct, kw_only=True):
@@ -153,6 +217,8 @@ class TickResult(msgspec.Struct, kw_only=True):
     active: list[ConflictRecord] = []
     #: Measurements the rules read that were missing or stale in this tick.
     undefined: list[str] = []
+    #: With ``tick(..., explain=True)``: why each feature and CV value that changed did.
+    why: list[Why] = []
 
 
 # ---- runtime helpers used by the generated code ------------------------------------------------
@@ -297,6 +363,8 @@ class _ActionInfo:
     cv: int = -1
     reason: str = ""
     claims: list[tuple[ClaimKey, str]] = field(default_factory=list)
+    #: Every claim (`claims` keeps only the contested ones): what it wants, to explain.
+    wants: list[tuple[ClaimKey, str]] = field(default_factory=list)
     requests: list[Request] = field(default_factory=list)
     #: select_feature_from_variants_of: the selectable variants, best first (the first
     #: available one is activated).
@@ -479,6 +547,7 @@ class _Compiler:
                     )
                 info.kind, info.cv = "set", self.cv_index[(t.feature, t.name)]
         info.claims = claims
+        info.wants = list(claims)
         kind = info.kind
         if kind == "activate" or kind == "deactivate":
             info.requests = [(kind, f) for f in info.features]
@@ -675,7 +744,7 @@ class AdaptationEngine:
                     for i in r.reads:
                         slot_units[i].add(u)
         self._slot_units = [tuple(sorted(s)) for s in slot_units]
-        self._family = _families(fm)
+        self._family = request_families(fm)
         self._leaf_group = _leaf_groups(fm)
         self._free_leaf = _free_leaves(fm)
         self.verify = verify
@@ -715,6 +784,28 @@ class AdaptationEngine:
         self._wishes: dict[ClaimKey, dict[int, tuple[str, FiredRule]]] = {}
         self._held: dict[int, set[ClaimKey]] = {}
         self._always = [u for u, unit in enumerate(self._units) if unit.always]
+        #: Why each feature and CV value is as it is: its last explained change (`why`).
+        self.provenance: dict[str, Why] = {}
+        #: What a target no explained change touched owes its state to.
+        self._origin: WhyReason = "default"
+        self._priority = {
+            (ruleset.name, rule.name): rule.priority
+            for ruleset, rules in model.units()
+            if ruleset is not None
+            for rule in rules
+        }
+        self._groups: dict[str, ClaimKey | None] = {}
+        self._wanting: dict[str, tuple[list[tuple[int, str]], list[tuple[int, str]]]] = {}
+        self._lost: dict[tuple[int, int], tuple[OverruleReason, str]] = {}
+        #: Static indexes: who claims what (feature actions), which actions set each CV.
+        self._claimants: dict[ClaimKey, list[tuple[int, str]]] = {}
+        self._cv_actions: list[list[int]] = [[] for _ in self._cvs]
+        for info in self._actions:
+            if info.cv >= 0:
+                self._cv_actions[info.cv].append(info.index)
+            elif info.requests:
+                for key, value in info.wants:
+                    self._claimants.setdefault(key, []).append((info.index, value))
 
     @property
     def cv(self) -> dict[str, float]:
@@ -730,6 +821,7 @@ class AdaptationEngine:
             raise SelectionError(
                 "cannot adopt the run-time selection", [p.message for p in problems]
             )
+        self._origin = "resumed" if chosen != self.selection or self.ticks else self._origin
         self.selection = chosen
         self._requested = [
             float(cv[c.key]) if c.key in cv else r
@@ -780,9 +872,16 @@ class AdaptationEngine:
         return True
 
     def tick(
-        self, now: float, measurements: Mapping[str, Sample], *, changed: Collection[str] = ()
+        self,
+        now: float,
+        measurements: Mapping[str, Sample],
+        *,
+        changed: Collection[str] = (),
+        explain: bool = False,
     ) -> TickResult:
-        """Evaluate the due rules on ``measurements`` (name -> (value, stamp)) at ``now`` (s)."""
+        """Evaluate the due rules on ``measurements`` (name -> (value, stamp)) at ``now`` (s).
+        ``explain``: fill `TickResult.why` for what changed, and keep it for `why`."""
+        requested_before = self._requested.copy() if explain else None
         fresh = self._prepare(now, measurements, changed)
         out: list[int] = []
         cv_before = self._effective
@@ -801,11 +900,16 @@ class AdaptationEngine:
         self.ticks += 1
         fired, rejected, conflicts, requests, sources = self._collect(out)
         active = self._in_force(out, fired, ran)
-        selection = self._select(requests, sources, fired, rejected)
+        trace: list[tuple[int, list[str]]] | None = [] if explain else None
+        selection = self._select(requests, sources, fired, rejected, trace)
         self._effective = self._clamp_all(selection)
         changed_any = selection != self.selection or self._effective != cv_before
-        self.selection = selection
+        before, self.selection = self.selection, selection
         undefined = [n for n, v in zip(self._slot_names, self._M, strict=True) if v is None]
+        why: list[Why] = []
+        if changed_any and trace is not None and requested_before is not None:
+            tick = _Tick(now, measurements, before, cv_before, requested_before, frozenset(out), V)
+            why = self._explain(tick, out, rejected, trace)
         return TickResult(
             now=now,
             selection=selection,
@@ -816,6 +920,7 @@ class AdaptationEngine:
             conflicts=conflicts,
             active=active,
             undefined=undefined,
+            why=why,
         )
 
     # steps of a tick
@@ -961,16 +1066,21 @@ class AdaptationEngine:
         sources: list[int],
         fired: list[FiredRule],
         rejected: list[Rejected],
+        trace: list[tuple[int, list[str]]] | None = None,
     ) -> frozenset[str]:
-        """Apply the feature requests; the selection stays valid (else the previous one)."""
+        """Apply the feature requests; the selection stays valid (else the previous one).
+        ``trace`` gets (the fired action's position, or `_OPERATOR` / `_UNAVAILABLE`, the
+        features it switched) for each change, in order."""
         current = self.selection
         live: list[Request] = []
         live_sources: list[int] = []
         if self.forced:  # newly forced features first: the rules' requests apply on top
-            current = overrides.enforce(self.fm, self.deployment, current, self.forced) or current
+            enforced = overrides.enforce(self.fm, self.deployment, current, self.forced)
+            current = _traced(trace, _OPERATOR, current, enforced or current)
             keep, blocked = overrides.split(requests, self.forced)
             for i, reason in blocked:
-                rejected.append(_rejected(fired[sources[i]], reason))
+                f = requests[i][1]
+                rejected.append(_rejected(fired[sources[i]], reason, forced=f))
             requests, sources = [requests[i] for i in keep], [sources[i] for i in keep]
         for (kind, f), src in zip(requests, sources, strict=True):
             if kind == "activate" and f in self.unavailable and not self.forced.get(f):
@@ -984,13 +1094,17 @@ class AdaptationEngine:
                 live_sources.append(src)
         live, live_sources = self._reduce(live, live_sources, current)
         if not live:
-            return self._leave_unavailable(current)
-        selection, refused = apply_requests(self.fm, self.deployment, current, live)
+            return _traced(trace, _UNAVAILABLE, current, self._leave_unavailable(current))
+        steps: list[tuple[int, list[str]]] | None = None if trace is None else []
+        selection, refused = apply_requests(self.fm, self.deployment, current, live, steps)
+        if trace is not None and steps:
+            trace += [(live_sources[i], names) for i, names in steps]
         for i, reason in refused:
             rejected.append(_rejected(fired[live_sources[i]], reason))
         if self.forced:
-            selection = self._enforce(selection, current, live, live_sources, fired, rejected)
-        selection = self._leave_unavailable(selection)
+            enforced = self._enforce(selection, current, live, live_sources, fired, rejected)
+            selection = _traced(trace, _OPERATOR, selection, enforced)
+        selection = _traced(trace, _UNAVAILABLE, selection, self._leave_unavailable(selection))
         if self.verify and selection != current:
             problems = check_selection(self.fm, self.deployment | selection)
             if problems:  # pragma: no cover - apply_requests keeps selections valid
@@ -1018,7 +1132,8 @@ class AdaptationEngine:
         for (kind, f), src in zip(live, sources, strict=True):
             if (f in result) != (kind == "activate"):
                 reason = f"cannot {kind} {f}: it would change an operator's forced feature"
-                rejected.append(_rejected(fired[src], reason + (f" ({forced})" if forced else "")))
+                reason += f" ({forced})" if forced else ""
+                rejected.append(_rejected(fired[src], reason, forced=f))
         return result
 
     def _reduce(
@@ -1026,7 +1141,7 @@ class AdaptationEngine:
     ) -> tuple[list[Request], list[int]]:
         """Drop the requests that cannot change the outcome of `apply_requests`.
 
-        A request only changes features of its own family (`_families`). Within a family, a
+        A request only changes features of its own family (`request_families`). Within a family, a
         request repeating the one before it is a no-op; and while a family has one surviving
         request, which therefore runs on ``current``, a request that supersedes it
         (`_supersedes`) replaces it: so a rule set's overridden defaults cost nothing. Then
@@ -1092,6 +1207,334 @@ class AdaptationEngine:
         active = self.deployment | selection
         return [clamp(c, v, active) for c, v in zip(self._cvs, self._requested, strict=True)]
 
+    # ---- explanation: what changed each target, and what was overruled --------------------
+    # Fired actions are told apart by their index in the action table: the compiler numbers
+    # them in evaluation order, so a larger index acted later in the tick.
+    def _explain(
+        self,
+        t: _Tick,
+        out: list[int],
+        rejected: list[Rejected],
+        trace: list[tuple[int, list[str]]],
+    ) -> list[Why]:
+        """Why each feature and CV value that changed in tick ``t`` did (kept for `why`)."""
+        cause: dict[str, int] = {}
+        for pos, names in trace:
+            k = out[pos] if pos >= 0 else pos
+            for name in names:
+                cause[name] = k
+        if rejected:
+            t.refused = {_key(r): r for r in rejected}
+        why = [self._why_feature(t, f, cause.get(f)) for f in sorted(t.before ^ self.selection)]
+        effective, before = self._effective, t.cv_before
+        why += [self._why_cv(t, i) for i in range(len(effective)) if effective[i] != before[i]]
+        return why
+
+    def _report(self, t: _Tick | _Now, k: int) -> FiredRule:
+        """The report of fired action ``k``, with the value it computed if it sets a CV."""
+        info = self._actions[k]
+        return info.fired if info.cv < 0 else msgspec.structs.replace(info.fired, value=t.V[k])
+
+    def _why_feature(self, t: _Tick, f: str, k: int | None) -> Why:
+        on = f in self.selection
+        by: tuple[FiredRule, ...] = ()
+        reason: WhyReason = "rule"
+        detail = ""
+        if k is None:
+            reason, detail = "model", "the feature model, completing another change"
+        elif k == _OPERATOR:
+            reason, detail = "operator", self._forced_text(f)
+        elif k == _UNAVAILABLE:
+            reason, detail = "unavailable", self._unavailable_text(f, t.before)
+        else:
+            by = (self._report(t, k),)
+            best = self._actions[k].variants[:1]
+            if best and best[0] in self.unavailable:
+                detail = f"its best variant, {best[0]}, is unavailable: {self.unavailable[best[0]]}"
+        opposing = self._opposing(t.fired, f, on)
+        overruled = (
+            tuple(
+                _overruled(self._report(t, j), wants, *self._beaten(t, j, k, f))
+                for j, wants in opposing
+                if j != k
+            )
+            if opposing
+            else ()
+        )
+        why = Why(
+            target=f,
+            kind="feature",
+            value="on" if on else "off",
+            since=t.now,
+            reason=reason,
+            by=by,
+            reads=_reads(by, t.measurements),
+            detail=detail,
+            overruled=overruled,
+        )
+        self.provenance[f] = why
+        return why
+
+    def _why_cv(self, t: _Tick, i: int) -> Why:
+        c, requested = self._cvs[i], self._requested[i]
+        sets = [k for k in self._cv_actions[i] if k in t.fired]
+        winner = sets[-1] if sets else None
+        by: tuple[FiredRule, ...] = ()
+        reason: WhyReason = "model"
+        detail = ""
+        owner = self._nfr_changed(c, t.before)
+        if winner is not None and requested != t.requested_before[i]:
+            by, reason = (self._report(t, winner),), "rule"
+        elif owner is not None:
+            state = "selected" if owner in self.selection else "deselected"
+            cause = self.provenance.get(owner)
+            by, reason = (cause.by if cause else ()), "nfr"
+            detail = f"{owner} was {state}: its NFR {self._nfr_name(owner, c)} " + (
+                "applies" if state == "selected" else "no longer applies"
+            )
+        elif winner is not None:
+            by, reason = (self._report(t, winner),), "rule"
+        overruled = [
+            _overruled(f, _value_text(f.value), *self._beaten(t, k, winner))
+            for k in sets[:-1]
+            if (f := self._report(t, k)) is not None
+        ]
+        limit = limiting(c, requested, self.deployment | self.selection)
+        if limit is not None and requested is not None:
+            text = self._limit_text(c, requested, limit)
+            detail = f"{detail}; {text}" if detail else text
+            standing = self._report(t, winner) if winner is not None else self._standing(c.key)
+            if standing is not None:
+                kind: OverruleReason = "bounds" if limit[0] in ("lower", "upper") else "nfr"
+                overruled.append(_overruled(standing, _value_text(requested), kind, text))
+        new = self._effective[i]
+        why = Why(
+            target=c.key,
+            kind="cv",
+            value="-" if new is None else f"{new:g}",
+            since=t.now,
+            reason=reason,
+            by=by,
+            reads=_reads(by, t.measurements),
+            detail=detail,
+            overruled=tuple(overruled),
+        )
+        self.provenance[c.key] = why
+        return why
+
+    def _beaten(
+        self, t: _Tick, k: int, winner: int | None, target: str = ""
+    ) -> tuple[OverruleReason, str]:
+        """Why fired action ``k`` did not prevail over ``winner`` (an action, `_OPERATOR`,
+        `_UNAVAILABLE`)."""
+        rejection = t.refused.get(_key(self._actions[k].fired)) if t.refused else None
+        if rejection is not None:
+            if rejection.forced:
+                return "operator", self._forced_text(rejection.forced)
+            if rejection.unavailable:
+                return "unavailable", rejection.reason
+            return "refused", rejection.reason
+        if winner == _OPERATOR:
+            return "operator", self._forced_text(target)
+        if winner == _UNAVAILABLE:
+            return "unavailable", self._unavailable_text(target, t.before)
+        if winner is not None and winner > k:
+            return self._later(k, winner)
+        return "refused", "its request changed nothing"
+
+    def _later(self, k: int, winner: int) -> tuple[OverruleReason, str]:
+        """Action ``k`` lost to action ``winner``, evaluated after it."""
+        found = self._lost.get((k, winner))
+        if found is not None:
+            return found
+        w = self._actions[winner].fired
+        reason: OverruleReason = "later_rule"
+        text = f"rule {_rule_name(w)}, written later, wins (a run-time conflict)"
+        if self._actions[k].unit == self._actions[winner].unit and w.ruleset is not None:
+            p = self._priority.get((w.ruleset, w.rule))
+            prio = f" (priority {p})" if p is not None else ""
+            reason = "priority"
+            text = f"rule {w.rule}{prio} has a higher priority in rule set {w.ruleset}"
+        self._lost[(k, winner)] = (reason, text)
+        return reason, text
+
+    def _opposing(self, fired: Collection[int], f: str, on: bool) -> list[tuple[int, str]]:
+        """The fired actions that want feature ``f`` otherwise than ``on``: (action, what it
+        wants: on, off or another alternative), in evaluation order."""
+        return [kw for kw in self._against(f)[on] if kw[0] in fired]
+
+    def _agreeing(self, fired: Collection[int], f: str, on: bool) -> int | None:
+        """The last fired action that wants feature ``f`` as it is (``on``), if any."""
+        return max((k for k, _ in self._against(f)[not on] if k in fired), default=None)
+
+    def _against(self, f: str) -> tuple[list[tuple[int, str]], list[tuple[int, str]]]:
+        """The actions that want ``f`` on (first) and off (second), with what they want:
+        ``on``, ``off`` or the alternative they choose instead; in evaluation order."""
+        table = self._wanting.get(f)
+        if table is None:
+            want: tuple[dict[int, str], dict[int, str]] = ({}, {})
+            for k, value in self._claimants.get(("feature", f), ()):
+                want[value != "on"].setdefault(k, value)
+            group = self._group_key(f)
+            for k, member in self._claimants.get(group, ()) if group is not None else ():
+                want[member != f].setdefault(k, "on" if member == f else member)
+            table = self._wanting[f] = (sorted(want[0].items()), sorted(want[1].items()))
+        return table
+
+    def _group_key(self, f: str) -> ClaimKey | None:
+        """The claim of ``f``'s alternative group (None: not in one)."""
+        if f not in self._groups:
+            claims = feature_claims(self.fm, f, True) if f in self.fm.features else []
+            self._groups[f] = next(
+                (key for key, value in claims if key[0] == "group" and value == f), None
+            )
+        return self._groups[f]
+
+    def _forced_text(self, f: str) -> str:
+        if f in self.forced:
+            return f"an operator forced {f} {'on' if self.forced[f] else 'off'}"
+        forced = ", ".join(f"{g} {'on' if on else 'off'}" for g, on in sorted(self.forced.items()))
+        return f"the features an operator forced ({forced or 'none now'})"
+
+    def _unavailable_text(self, f: str, before: frozenset[str]) -> str:
+        if f in self.unavailable:
+            return f"{f} is unavailable: {self.unavailable[f]}"
+        gone = sorted(g for g in self.unavailable if g in before and g not in self.selection)
+        return f"in place of {', '.join(gone)} (unavailable)" if gone else "an unavailable feature"
+
+    def _nfr_changed(self, c: CvAttribute, before: frozenset[str]) -> str | None:
+        """An owner of an NFR on ``c`` that was selected or deselected since ``before``."""
+        for owner, _ in (*c.nfr_max, *c.nfr_min):
+            if (owner in before) != (owner in self.selection) and owner not in self.deployment:
+                return owner
+        return None
+
+    def _nfr_name(self, owner: str, c: CvAttribute) -> str:
+        names = [
+            a.name
+            for a in self.fm.features[owner].attributes
+            if a.kind == "nfr" and a.constrains in (c.attribute, f"{c.feature}.{c.attribute}")
+        ]
+        return names[0] if names else "?"
+
+    def _limit_text(self, c: CvAttribute, requested: float, limit: tuple[str, str, float]) -> str:
+        kind, owner, bound = limit
+        if kind in ("lower", "upper"):
+            return f"{requested:g} clamped into its bounds [{c.lower:g}, {c.upper:g}]"
+        name = self._nfr_name(owner, c)
+        return f"{requested:g} clamped to {bound:g} by the NFR {name} of {owner} ({kind} {bound:g})"
+
+    def _standing(self, key: str) -> FiredRule | None:
+        """The rule whose value a CV holds (its last change), if a rule set it."""
+        why = self.provenance.get(key)
+        return why.by[0] if why is not None and why.reason == "rule" and why.by else None
+
+    # ---- why: the current state, for people (rra why) -----------------------------------
+    def note(self, why: Iterable[Why]) -> None:
+        """Take these explanations as the provenance of their targets (a replica following
+        its leader's selections)."""
+        for w in why:
+            self.provenance[w.target] = w
+
+    def targets(self) -> list[tuple[str, str]]:
+        """(kind, name) of everything `why` explains: the run-time features selectable under
+        the deployment, in model order, then the CV attributes."""
+        features = [("feature", f) for f in self.fm.features if f in self.selectable]
+        return features + [("cv", c.key) for c in self._cvs]
+
+    def target(self, name: str) -> tuple[str, str]:
+        """(kind, canonical name) of a run-time feature or CV attribute named ``name`` (a
+        feature's alias, a CV's ``Feature.Attr`` or attribute name); KeyError saying what
+        there is otherwise."""
+        feature = self.fm.resolve_name(name)
+        if feature is not None and feature in self.selectable:
+            return "feature", feature
+        for c in self._cvs:
+            if name in (c.key, f"{c.feature}.{c.attribute}", c.attribute):
+                return "cv", c.key
+        if feature is not None:
+            raise KeyError(f"{feature} is not a run-time feature selectable in this deployment")
+        known = [n for _, n in self.targets()]
+        close = difflib.get_close_matches(name, known, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise KeyError(f"no run-time feature or CV attribute named {name!r}{hint}")
+
+    def why(self, names: Iterable[str] | None = None) -> list[Why]:
+        """The current state of each named run-time feature or CV attribute (default: every
+        one, `targets`) and why: the change that put it there and, evaluated now on the
+        latest measurements, the actions that want otherwise and why they do not prevail.
+        Raises KeyError for a name that is neither."""
+        chosen = self.targets() if names is None else [self.target(n) for n in names]
+        out: list[int] = []
+        values: list[Any] = [None] * len(self._actions)
+        for fn, _ in self._plan:  # every unit, due or not, on the latest tick's inputs
+            fn(self._M, self._effective, out, values)
+        now = _Now(frozenset(out), values)
+        return [
+            self._feature_now(now, name) if kind == "feature" else self._cv_now(now, name)
+            for kind, name in chosen
+        ]
+
+    def _feature_now(self, now: _Now, f: str) -> Why:
+        on = f in self.selection
+        base = self._standing_why(f, "feature", "on" if on else "off")
+        if f in self.forced and base.reason != "operator":
+            base = msgspec.structs.replace(
+                base, reason="operator", by=(), reads={}, detail=self._forced_text(f)
+            )
+        agree = self._agreeing(now.fired, f, on)
+        overruled = tuple(
+            _overruled(self._report(now, k), wants, *self._beaten_now(k, agree, f, wants))
+            for k, wants in self._opposing(now.fired, f, on)
+        )
+        return msgspec.structs.replace(base, overruled=overruled)
+
+    def _beaten_now(
+        self, k: int, agree: int | None, f: str, wants: str
+    ) -> tuple[OverruleReason, str]:
+        """Why action ``k``, which wants ``f`` otherwise, does not prevail now."""
+        info = self._actions[k]
+        forced = next((g for g in (f, *(g for _, g in info.requests)) if g in self.forced), None)
+        if forced is not None:
+            return "operator", self._forced_text(forced)
+        wanted = f if wants == "on" else wants if wants != "off" else None
+        if wanted is not None and wanted in self.unavailable:
+            return "unavailable", f"{wanted} is unavailable: {self.unavailable[wanted]}"
+        if agree is not None and agree > k:
+            return self._later(k, agree)
+        _, refusals = apply_requests(self.fm, self.deployment, self.selection, info.requests)
+        if refusals:
+            return "refused", refusals[0][1]
+        return "waiting", _WAITING
+
+    def _cv_now(self, now: _Now, key: str) -> Why:
+        i = next(i for i, c in enumerate(self._cvs) if c.key == key)
+        c, requested, value = self._cvs[i], self._requested[i], self._effective[i]
+        base = self._standing_why(key, "cv", "-" if value is None else f"{value:g}")
+        sets = [k for k in self._cv_actions[i] if k in now.fired]
+        reports = [self._report(now, k) for k in sets]
+        overruled = [
+            _overruled(f, _value_text(f.value), *self._later(k, sets[-1]))
+            for k, f in zip(sets[:-1], reports, strict=False)
+        ]
+        if reports and reports[-1].value != requested:
+            last = reports[-1]
+            overruled.append(_overruled(last, _value_text(last.value), "waiting", _WAITING))
+        limit = limiting(c, requested, self.deployment | self.selection)
+        standing = reports[-1] if reports else self._standing(key)
+        if limit is not None and requested is not None and standing is not None:
+            kind: OverruleReason = "bounds" if limit[0] in ("lower", "upper") else "nfr"
+            text = self._limit_text(c, requested, limit)
+            overruled.append(_overruled(standing, _value_text(requested), kind, text))
+        return msgspec.structs.replace(base, overruled=tuple(overruled))
+
+    def _standing_why(self, target: str, kind: Literal["feature", "cv"], value: str) -> Why:
+        """The provenance of ``target`` if it still holds, else since the engine began."""
+        why = self.provenance.get(target)
+        if why is not None and why.value == value:
+            return why
+        return Why(target=target, kind=kind, value=value, reason=self._origin)
+
 
 _UNSEEN = object()
 _RECORD_KIND = {"feature": "feature", "group": "alternative", "attribute": "attribute"}
@@ -1099,11 +1542,11 @@ _RECORD_KIND = {"feature": "feature", "group": "alternative", "attribute": "attr
 
 def feature_families(fm: FeatureModel) -> dict[str, object]:
     """Run-time feature -> its family: the features one request on it can change (see
-    `_families`); requests on different families never interact."""
-    return _families(fm)
+    `request_families`); requests on different families never interact."""
+    return request_families(fm)
 
 
-def _families(fm: FeatureModel) -> dict[str, object]:
+def request_families(fm: FeatureModel) -> dict[str, object]:
     """Run-time features grouped so that requests in different groups cannot interact.
 
     `apply_requests` changes the requested feature, its subtree, its run-time ancestors and
@@ -1224,21 +1667,95 @@ def _wanted(key: ClaimKey, value: str, f: FiredRule) -> str:
     return value
 
 
-def _rejected(report: FiredRule, reason: str, unavailable: str = "") -> Rejected:
+def _rejected(
+    report: FiredRule, reason: str, unavailable: str = "", *, forced: str = ""
+) -> Rejected:
     return Rejected(
         rule=report.rule,
         action=report.action,
         reason=reason,
         span=report.span,
         unavailable=unavailable,
+        forced=forced,
+    )
+
+
+#: `_select`'s trace: a change made by enforcing operators' forced features, or by leaving
+#: unavailable features (the others are fired actions' positions).
+_OPERATOR = -1
+_UNAVAILABLE = -2
+
+
+@dataclass(slots=True)
+class _Tick:
+    """What `AdaptationEngine._explain` needs of one tick."""
+
+    now: float
+    measurements: Mapping[str, Sample]
+    before: frozenset[str]
+    cv_before: list[float | None]
+    requested_before: list[float | None]
+    #: The fired actions (their indices) and the values the set actions computed.
+    fired: frozenset[int]
+    V: list[Any]
+    refused: dict[tuple[str, str, Span | None], Rejected] | None = None
+
+
+@dataclass(slots=True)
+class _Now:
+    """A dry evaluation for `AdaptationEngine.why`: the actions that fire, their values."""
+
+    fired: frozenset[int]
+    V: list[Any]
+
+
+_WAITING = "not applied yet: its rule runs on its period or on new measurements"
+
+
+def _traced(
+    trace: list[tuple[int, list[str]]] | None,
+    who: int,
+    before: frozenset[str],
+    after: frozenset[str],
+) -> frozenset[str]:
+    """``after``; the features that differ from ``before`` go to ``trace`` as ``who``'s."""
+    if trace is not None and after != before:
+        trace.append((who, sorted(after ^ before)))
+    return after
+
+
+def _key(r: FiredRule | Rejected) -> tuple[str, str, Span | None]:
+    return (r.rule, r.action, r.span)
+
+
+def _reads(by: Iterable[FiredRule], measurements: Mapping[str, Sample]) -> dict[str, Any]:
+    """The samples (value, stamp) the actions ``by`` read."""
+    return {n: tuple(measurements[n]) for f in by for n in f.reads if n in measurements}
+
+
+def _value_text(value: float | None) -> str:
+    return "undefined" if value is None else f"{value:g}"
+
+
+def _rule_name(f: FiredRule) -> str:
+    return f.rule if f.ruleset is None else f"{f.ruleset}.{f.rule}"
+
+
+def _overruled(f: FiredRule, wants: str, why: OverruleReason, detail: str) -> Overruled:
+    return Overruled(
+        rule=f.rule,
+        action=f.action,
+        span=f.span,
+        ruleset=f.ruleset,
+        wants=wants,
+        why=why,
+        detail=detail,
     )
 
 
 def _due(timed: list[_RuleSchedule], now: float) -> bool:
     """Whether a rule with ``period N ms`` (N > 0) is due: N ms after its last run."""
     return any(r.last is None or now - r.last >= r.period - 1e-9 for r in timed)  # type: ignore[operator]
-
-
 
 
 __getattr__ = _compat.renamed(__name__)  # old names, for one release (docs/api.md)

@@ -100,3 +100,24 @@ def clamp(cv: CvAttribute, value: float | None, active: frozenset[str]) -> float
         if owner in active and value > limit:
             value = limit
     return value
+
+
+def limiting(
+    cv: CvAttribute, value: float | None, active: frozenset[str]
+) -> tuple[str, str, float] | None:
+    """What set the clamped value of ``value`` (as `clamp` clamps it): ``("lower" | "upper",
+    "", bound)``, ``("min" | "max", NFR owner, limit)``, or None when nothing moved it."""
+    if value is None:
+        return None
+    last: tuple[str, str, float] | None = None
+    if cv.lower is not None and value < cv.lower:
+        value, last = cv.lower, ("lower", "", cv.lower)
+    if cv.upper is not None and value > cv.upper:
+        value, last = cv.upper, ("upper", "", cv.upper)
+    for owner, limit in cv.nfr_min:
+        if owner in active and value < limit:
+            value, last = limit, ("min", owner, limit)
+    for owner, limit in cv.nfr_max:
+        if owner in active and value > limit:
+            value, last = limit, ("max", owner, limit)
+    return last

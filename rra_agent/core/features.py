@@ -858,6 +858,7 @@ def apply_requests(
     deployment: Collection[str],
     previous: Collection[str],
     requests: Sequence[Request],
+    trace: list[tuple[int, list[str]]] | None = None,
 ) -> tuple[frozenset[str], list[tuple[int, str]]]:
     """Apply the Adaptation Engine's (de)activation requests, in order, to a run-time selection.
 
@@ -878,7 +879,9 @@ def apply_requests(
 
     After each request the full selection (deployment + run-time) must have no violation, or
     the request is rejected with the violations as its reason. Features no request touches
-    keep their state. Returns the new run-time selection and the rejections.
+    keep their state. Returns the new run-time selection and the rejections. With ``trace``,
+    each honoured request that changed the selection appends (its index, the run-time
+    features it switched on or off): which request made each change.
     """
     ctx = _context(fm, deployment)
     idx = ctx.idx
@@ -906,6 +909,8 @@ def apply_requests(
             rejected.append((i, f"cannot {action} {_canonical(idx, name)}: {reasons}{hint}"))
         else:
             cur, valid = work, True
+            if trace is not None:
+                trace.append((i, [idx.names[v] for v in changed if idx.runtime[v]]))
     result = frozenset(idx.names[v] for v in range(len(cur)) if cur[v] and idx.runtime[v])
     if valid:
         ctx.remember_valid(result)

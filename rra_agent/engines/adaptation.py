@@ -18,6 +18,15 @@ Operators force run-time features on or off (``rra select``, `ForceFeatures` on
 released, and carried in every `Selection` (``forced``), which the Run-time Resolution
 Engine keeps in its state: a restarted Adaptation Engine resumes with them.
 
+Why: the leader explains each change it decides (`rra_agent.engines.explain`): a selection
+names the rules that changed it (``cause``), and for each feature and CV value it changes,
+the values those rules read and the rules that were overruled, and why (``why``). A standby
+keeps its leader's explanations. ``rra why`` asks the leader (`Explain`) about the current
+state, and the configurations the rules can reach from it.
+
+A measurement marked as an operator's override (``rra inject measurement``) is taken only
+with the fence of the live Context Monitor leader: anyone else's is refused and counted.
+
 It never publishes a default selection over a running system: before it evaluates anything
 it resumes from the system's current selection and CV values, asked from the Run-time
 Resolution Engine (``GetState``), and from the newest measurements, asked from the Context
@@ -31,6 +40,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -45,14 +55,23 @@ from rra_agent.core.availability import requirements, unavailable_features
 from rra_agent.core.live_conflicts import ConflictTracker, LiveConflict
 from rra_agent.core.monitor import measurement_problem
 from rra_agent.core.overrides import OverrideError
+from rra_agent.core.reachable import reachable
+from rra_agent.core.reload import carry_over, engine_for
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
+from rra_agent.engines.explain import causes, core_why, reachable_summary, wire_why
 from rra_agent.engines.leaders import LeaderWatch
-from rra_agent.errors import SelectionError
+from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.errors import RraError, SelectionError
+from rra_agent.package.bundle import ModelBundle
+from rra_agent.record.hooks import AdaptationRecorder, open_writer
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "adaptation"
+#: Overrides remembered to mark the values read that were an operator's (about 25 s of one
+#: override re-sent ten times a second).
+OVERRIDES_KEPT = 256
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
@@ -73,6 +92,7 @@ class AdaptationEngineProcess(EngineProcess):
         tick: float = 0.05,
         heartbeat: float = 1.0,
         resume_timeout: float = 60.0,
+        run_dir: Path | None = None,
     ) -> None:
         if dep.package.adaptation is None:
             raise ValueError(f"package {dep.package.name!r} has no adaptation model")
@@ -100,8 +120,23 @@ class AdaptationEngineProcess(EngineProcess):
         #: Run-time Resolution Engine leader whose state says which are unavailable.
         self.needs = requirements(dep.package.features, dep.package.runtime)
         self.resolution: LeaderWatch | None = None
+        #: The Context Monitor leader: an operator's override carries its fence.
+        self.monitor: LeaderWatch | None = None
         #: Rejections as unavailable already reported: (rule, feature).
         self._unavailable_told: set[tuple[str, str]] = set()
+        self._reach: tuple[Any, dict[str, Any]] | None = None
+        #: The operators' overrides received: (measurement, stamp) -> who (the newest
+        #: `OVERRIDES_KEPT`), so that an explanation says which value read was one.
+        self.overrides: dict[tuple[str, float], str] = {}
+        #: The run's record (``<run>/record/``): every call on the core (docs/recording.md).
+        self.run_dir = run_dir
+        self.rec: AdaptationRecorder | None = None
+        #: The Resolution Engine leader's unavailable implementations, as last received.
+        self._unavailable_raw: list[m.Unavailable] = []
+        #: Models prepared for a reload, by digest, and the models the Run-time Resolution
+        #: Engine leader runs (this replica switches to them: `_follow_models`).
+        self._prepared: dict[str, tuple[Deployment, AdaptationEngine]] = {}
+        self._leader_models = dep.models
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
     def _on_ctx(self, sample: zenoh.Sample) -> None:
@@ -112,14 +147,34 @@ class AdaptationEngineProcess(EngineProcess):
         if problem is not None:  # forged on the bus: the Context Monitor never sends these
             self.refuse(problem[0], f"measurement {msg.name}: {problem[1]}")
             return
+        if msg.override and not self._from_monitor(msg):
+            return
+        if msg.override:
+            self._note_override(msg)
         with self.lock:
             self.counters.received += 1
             self.measurements[msg.name] = (msg.value, msg.stamp)
             self.changed.add(msg.name)
+            if self.rec is not None:
+                self.rec.received(msg)
             schedule, self._scheduled = not self._scheduled, True
         if schedule and not self.loop.run_or_post(self._evaluate_posted):
             with self.lock:
                 self._scheduled = False
+
+    def _note_override(self, msg: m.Measurement) -> None:
+        with self.lock:
+            self.overrides[(msg.name, msg.stamp)] = msg.override
+            while len(self.overrides) > OVERRIDES_KEPT:
+                del self.overrides[next(iter(self.overrides))]
+
+    def _from_monitor(self, msg: m.Measurement) -> bool:
+        """An override comes only from the live Context Monitor leader (its fence)."""
+        if self.monitor is not None and self.monitor.holds(msg.fence):
+            return True
+        who = msg.fence.leader if msg.fence else "nobody"
+        self.refuse("forged override", f"override of {msg.name} by {msg.override} from {who}")
+        return False
 
     def _on_selection(self, sample: zenoh.Sample) -> None:
         msg = receive(sample.payload, "selection", _SEL)
@@ -141,10 +196,18 @@ class AdaptationEngineProcess(EngineProcess):
         unavailable (only its live leader's state counts)."""
         state = self.leader_state(sample, self.resolution)
         if state is not None:
-            self.loop.post(lambda: self._availability(state.unavailable))
+            self.loop.post(lambda: self._resolution_state(state))
+
+    def _resolution_state(self, state: m.EngineState) -> None:
+        """The leader's models first (a reload), then what is unavailable."""
+        self._follow_models(state.models)
+        self._availability(state.unavailable)
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
         """Decide again without the features that need an unavailable implementation."""
+        if unavailable != self._unavailable_raw and self.rec is not None:
+            self.rec.avail(unavailable)
+        self._unavailable_raw = list(unavailable)
         gone = {(u.component, u.implementation): u.reason for u in unavailable}
         if self.engine.set_unavailable(unavailable_features(self.needs, gone)):
             self._unavailable_told.clear()
@@ -156,9 +219,10 @@ class AdaptationEngineProcess(EngineProcess):
         """Resume from the running system before taking part in the election."""
         state = self._ask_state()
         if state is not None:
+            self._follow_models(state.models)
             self._adopt(state.selection, state.cv, "resumed from the system's state")
             self._availability(state.unavailable)
-            self.engine.forced = dict(state.forced)
+            self._set_forced(state.forced)
             self.conflicts.adopt(_live(c) for c in state.conflicts)
             if state.selection_fence is not None:
                 self._floor = state.selection_fence.epoch
@@ -208,10 +272,19 @@ class AdaptationEngineProcess(EngineProcess):
                     self.measurements[msg.name] = (msg.value, msg.stamp)
 
     def _adopt(self, selection: list[str], cv: dict[str, float], why: str) -> None:
+        error = ""
         try:
             self.engine.adopt(selection, cv)
         except SelectionError as e:
+            error = str(e)
             self.refuse("selection", f"{why}: {e}")
+        if self.rec is not None:
+            self.rec.adopt(selection, cv, why, error)
+
+    def _set_forced(self, forced: dict[str, bool]) -> None:
+        if self.rec is not None and forced != self.engine.forced:
+            self.rec.forced(forced)
+        self.engine.forced = dict(forced)
 
     def _follow(self, msg: m.Selection) -> None:
         """A selection of the leader: a standby keeps the same state. Only the leader this
@@ -222,8 +295,11 @@ class AdaptationEngineProcess(EngineProcess):
         if msg.fence.term != self.election.leader:
             self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
             return
+        if msg.models != self.dep.models and not self._follow_models(msg.models):
+            return  # models it cannot get: it keeps its own state (refused and counted)
         self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
-        self.engine.forced = dict(msg.forced)
+        self.engine.note(core_why(w) for w in msg.why)
+        self._set_forced(msg.forced)
         self.conflicts.adopt(_live(c) for c in msg.conflicts)
         self.seq = max(self.seq, msg.seq)
 
@@ -240,7 +316,27 @@ class AdaptationEngineProcess(EngineProcess):
             values, changed = dict(self.measurements), self.changed
             self.changed = set()
         now = time.time()
-        result = self.engine.tick(now, values, changed=changed)
+        result = self.engine.tick(now, values, changed=changed, explain=self.leading)
+        seq = self.seq
+        try:
+            return self._decided(result, values, now, force)
+        finally:
+            if self.rec is not None:
+                self._record_tick(result, values, changed, force, seq)
+
+    def _record_tick(
+        self, result: TickResult, values: dict, changed: set[str], force: bool, seq: int
+    ) -> None:
+        assert self.rec is not None
+        self.rec.tick(
+            result.now, values, changed, force=force, lead=self.leading,
+            selection=result.selection, cv=result.cv,
+            fired=[f.rule if f.ruleset is None else f"{f.ruleset}.{f.rule}" for f in result.fired],
+            seq=self.seq if self.seq != seq else 0,
+        )  # fmt: skip
+
+    def _decided(self, result: TickResult, values: dict, now: float, force: bool) -> TickResult:
+        """The leader publishes what it decided (a change, an event, or a heartbeat due)."""
         if not self.leading:
             return result
         started: list[LiveConflict] = []
@@ -312,15 +408,8 @@ class AdaptationEngineProcess(EngineProcess):
 
     def publish(self, result: TickResult, values: dict, now: float) -> None:
         self.seq += 1
-        cause = [
-            m.FiredRule(
-                rule=f.rule if f.ruleset is None else f"{f.ruleset}.{f.rule}",
-                action=f.action,
-                where=f"{f.span.file}:{f.span.line}:{f.span.col}" if f.span else "",
-                reads={n: values[n][1] for n in f.reads if n in values},
-            )
-            for f in result.fired
-        ]
+        why = [wire_why(w, self.overrides) for w in result.why]
+        cause = causes(why)
         self._send(
             m.Selection(
                 seq=self.seq,
@@ -334,6 +423,8 @@ class AdaptationEngineProcess(EngineProcess):
                 fence=self.fence,
                 forced=dict(self.engine.forced),
                 conflicts=[_report(c, c.since, None) for c in self.conflicts.current],
+                why=why,
+                models=self.dep.models,
             )
         )
         self.last_sent = now
@@ -345,6 +436,7 @@ class AdaptationEngineProcess(EngineProcess):
                 universe=self.dep.package.features.runtime_features(),
                 fired=[f"{c.rule}: {c.action}" for c in cause],
                 changed=result.changed,
+                why=why,
             )
 
     def _send(self, msg: m.Selection | m.ConflictReport) -> None:
@@ -356,7 +448,40 @@ class AdaptationEngineProcess(EngineProcess):
         match request:
             case m.ForceFeatures(features=features, operator=who):
                 return self.force(dict(features), who)
+            case m.Explain():
+                return self.explain(request)
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare(bundle)
         return super().serve(request)
+
+    def explain(self, request: m.Explain) -> m.Reply:
+        """Why the current features and CV values are what they are (``rra why``)."""
+        if not self.resumed:
+            return m.Err(message=f"{self.name} has not resumed yet", code="not_leader")
+        try:
+            why = self.engine.why(request.targets or None)
+        except KeyError as e:
+            return m.Err(message=str(e.args[0]), code="unknown")
+        result: dict[str, Any] = {
+            "why": [msgspec.to_builtins(wire_why(w, self.overrides)) for w in why],
+            "selection": sorted(self.engine.selection),
+            "forced": _choices(self.engine.forced),
+        }
+        if request.reachable:
+            result["reachable"] = self._reachable()
+        return m.Ok(result=result)
+
+    def _reachable(self) -> dict[str, Any]:
+        """The configurations the rules can reach from the current one (cached per state)."""
+        e = self.engine
+        key = (e.selection, tuple(sorted(e.forced.items())), frozenset(e.unavailable))
+        if self._reach is None or self._reach[0] != key:
+            pkg = self.dep.package
+            assert pkg.adaptation is not None
+            found = reachable(pkg.features, self.dep.selection, pkg.adaptation, e.selection,
+                              forced=e.forced, unavailable=e.unavailable.keys())  # fmt: skip
+            self._reach = (key, reachable_summary(found))
+        return self._reach[1]
 
     def force(self, features: dict[str, str], who: str) -> m.Reply:
         """Force (or release) run-time features, then evaluate and publish at once."""
@@ -366,7 +491,11 @@ class AdaptationEngineProcess(EngineProcess):
             self.engine.force(features)
         except OverrideError as e:
             self.refuse("override", str(e))
+            if self.rec is not None:
+                self.rec.force(features, who, str(e))
             return m.Err(message=str(e), code="refused")
+        if self.rec is not None:
+            self.rec.force(features, who, "")
         result = self.evaluate(force=True)
         forced = self.engine.forced
         asked = ", ".join(f"{f} {v}" for f, v in sorted(features.items()))
@@ -379,6 +508,8 @@ class AdaptationEngineProcess(EngineProcess):
 
     # ---- engine hooks ------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
+        writer = open_writer(self.run_dir, self.name, self.role, self.dep, self.host)
+        self.rec = AdaptationRecorder(writer) if writer is not None else None
         self.viz = open_logger(self.name)
         self.events = EventSink(session, self.keys.events, None)
         self.publisher = session.declare_publisher(
@@ -388,17 +519,22 @@ class AdaptationEngineProcess(EngineProcess):
             express=True,
         )
         self.resolution = LeaderWatch(session, self.keys, "resolution")
+        self.monitor = LeaderWatch(session, self.keys, "monitor")
         return [
             self.publisher,
             self.events.publisher,
             self.resolution,
+            self.monitor,
             session.declare_subscriber(self.keys.ctx_all, self._on_ctx),
             session.declare_subscriber(self.keys.selection, self._on_selection),
             session.declare_subscriber(self.keys.state("resolution"), self._on_state),
         ]
 
     def on_leadership(self, leading: bool) -> None:
+        if self.rec is not None:
+            self.rec.lead(leading, self.fence)
         if leading:
+            self._follow_models(self._leader_models)  # never decide under other models
             self.evaluate(force=True)  # the system learns the new leader's fence at once
 
     def tick(self, now: float) -> None:
@@ -416,6 +552,7 @@ class AdaptationEngineProcess(EngineProcess):
             "conflicts": [
                 msgspec.to_builtins(_report(c, c.since, None)) for c in self.conflicts.current
             ],
+            "models": self.dep.models,
         }
 
     def extra_counters(self) -> dict[str, int]:
@@ -426,6 +563,61 @@ class AdaptationEngineProcess(EngineProcess):
         self.events = None
         if self.viz:
             self.viz.close()
+        if self.rec is not None:
+            self.rec.writer.close(end=time.time())
+
+    # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """Load and compile these models, ready to switch to (nothing changes yet)."""
+        try:
+            self._prepared[bundle.digest] = self._load_models(bundle)
+        except RraError as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        return m.Ok(result={"models": bundle.digest})
+
+    def _load_models(self, bundle: ModelBundle) -> tuple[Deployment, AdaptationEngine]:
+        dep = deploy_bundle(bundle, self.dep)
+        if dep.package.adaptation is None:
+            raise RraError("the new models have no adaptation model")
+        return dep, engine_for(dep.package.features, dep.selection, dep.package.adaptation)
+
+    def _follow_models(self, digest: str) -> bool:
+        """Run the models ``digest`` (the Resolution Engine leader's, or this replica's
+        leader's): at once if prepared, else loaded now. False (refused and counted) when
+        they cannot be had: the replica keeps its own and decides nothing new under them
+        while it does not lead."""
+        if not digest:
+            return True
+        self._leader_models = digest
+        if digest == self.dep.models:
+            return True
+        try:
+            prepared = self._prepared.pop(digest, None)
+            if prepared is None:
+                bundle = find_bundle(digest, self.run_dir, self.session, self.keys)
+                prepared = self._load_models(bundle)
+        except RraError as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+            return False
+        self.switch_models(*prepared)
+        return True
+
+    def switch_models(self, dep: Deployment, engine: AdaptationEngine) -> None:
+        """Continue on new models: the core state carried over (`carry_over`), then an
+        evaluation under them at once (the leader publishes it)."""
+        previous = self.dep.models
+        self.needs = requirements(dep.package.features, dep.package.runtime)
+        gone = {(u.component, u.implementation): u.reason for u in self._unavailable_raw}
+        self.engine = carry_over(self.engine, engine, unavailable_features(self.needs, gone))
+        self.dep = dep
+        self.declared = {meas.name: meas for meas in dep.package.measurements.measurements}
+        self._prepared.clear()
+        self._unavailable_told.clear()
+        if self.rec is not None:
+            self.rec.reload(dep.models, previous)
+        print(f"rra {self.name}: models {dep.models} (were {previous})", flush=True)
+        if self.resumed:
+            self.evaluate(force=True)
 
 
 def _report(c: LiveConflict, now: float, lasted: float | None) -> m.ConflictReport:
@@ -484,7 +676,7 @@ def warm_up(argv: list[str]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.adaptation --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_setup, parse_engine_args
+    from rra_agent.engines.launch import engine_setup, parse_engine_args, record_dir
 
     args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
@@ -493,8 +685,9 @@ def main(argv: list[str] | None = None) -> int:
     dep, bus, host, name = setup
     try:
         proc = AdaptationEngineProcess(
-            dep, bus, host=host, name=name, tick=args.tick, heartbeat=args.heartbeat
-        )
+            dep, bus, host=host, name=name, tick=args.tick, heartbeat=args.heartbeat,
+            run_dir=record_dir(args),
+        )  # fmt: skip
     except ValueError as e:
         print(f"rra adaptation: {e}", file=sys.stderr)
         return 2

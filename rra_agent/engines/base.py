@@ -34,6 +34,7 @@ from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.session import beat_period, open_session
 from rra_agent.deployment import Deployment
 from rra_agent.engines.election import Election
+from rra_agent.engines.ros2 import EngineRos2, EventMirror, engine_ros2
 
 _REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 _NODE_REQ = m.Codec[m.NodeRequest](m.NodeRequest)
@@ -47,6 +48,8 @@ class EngineProcess:
     role: str = ""
     #: How often ``tick`` runs (seconds).
     tick_period: float = 0.5
+    #: Whether its leader puts the system's events on ROS 2 (a package with ``ros2:``).
+    ros2_events: bool = False
 
     def __init__(
         self, dep: Deployment, bus: BusConfig, *, host: str, name: str, heartbeat: float = 4.0
@@ -64,6 +67,8 @@ class EngineProcess:
         self.election: Election | None = None
         self._role_ctl: Any = None
         self._snapshot: dict[str, Any] = {}
+        #: Its ROS 2 node (a package with ``ros2:``; `rra_agent.engines.ros2`).
+        self.ros2: EngineRos2 | None = None
 
     # ---- hooks for the engines ---------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
@@ -115,8 +120,16 @@ class EngineProcess:
             "leading": self.leading,
             "leader": list(self.election.leader or ()) if self.election else [],
         }
+        if self.ros2 is not None:  # where a tool finds the system's ROS 2 graph
+            settings = self.ros2.settings
+            status["ros2"] = {"domain": settings.domain, "distro": settings.distro}
         with self.lock:
             self._snapshot = status
+
+    def snapshot(self) -> dict[str, Any]:
+        """What ``Status`` answers (Zenoh thread): the last `publish_status`."""
+        with self.lock:
+            return dict(self._snapshot)
 
     def stats(self) -> m.ProcessStats:
         c = self.counters
@@ -156,13 +169,15 @@ class EngineProcess:
         self.counters.received += 1
         match req:
             case m.Status() | m.Describe():
-                with self.lock:
-                    snapshot = dict(self._snapshot)
-                return self._reply(query, m.Ok(result=snapshot))
+                return self._reply(query, m.Ok(result=self.snapshot()))
             case m.Ping():
                 return self._reply(query, m.Ok(result={"pid": os.getpid(), "name": self.name}))
             case m.Stats():
                 return self._reply(query, m.Ok(result=self.stats()))
+        if isinstance(req, m.PrepareModels):  # loading models takes a while: not on the loop
+            threading.Thread(target=lambda: self._reply(query, self._serve(req)),
+                             name="prepare-models", daemon=True).start()  # fmt: skip
+            return None
         if not self.loop.post(lambda: self._reply(query, self._serve(req))):
             self._reply(query, m.Err(message=f"{self.name} is overloaded", code="busy"))
         return None
@@ -222,6 +237,7 @@ class EngineProcess:
             entities = [
                 session.declare_queryable(self.keys.engine_ctl(self.name), self._on_engine_query),
                 session.declare_queryable(self.keys.node_ctl(self.name), self._on_process_query),
+                *self._declare_ros2(session),
                 *self.declare(session),
             ]
             self.starting()
@@ -256,6 +272,19 @@ class EngineProcess:
                     entity.undeclare()
             session.close()
             self.session = None
+
+    def _declare_ros2(self, session: zenoh.Session) -> list[Any]:
+        """Its ROS 2 node, and for the role that says so the events on ROS 2 (closed
+        before the session, with the other entities)."""
+        self.ros2 = engine_ros2(session, self.dep, self.name)
+        if self.ros2 is None:
+            return []
+        out: list[Any] = [self.ros2]
+        topic = self.ros2.settings.events
+        if self.ros2_events and topic is not None:
+            mirror = EventMirror(session, self.keys, self.ros2.node, topic, lambda: self.leading)
+            out.insert(0, mirror)
+        return out
 
     def _tick(self, now: float) -> None:
         if self.election is not None:

@@ -561,13 +561,23 @@ class Executor:
         """A plan that starts processes sets the parameters that depend on nothing first, in
         one batch, so that they never wait for a start (seconds, or a timeout); the other
         steps are returned. Without starts they go with the switch (one batch less)."""
-        launches = any(_launches(s) is not None for s, u in steps if tx.ok(u))
+        launches = any(self._starts_process(s) for s, u in steps if tx.ok(u))
         mixed = {u for s, u in steps if not isinstance(s, SetParameters)}
         alone = [(s, u) for s, u in steps if u not in mixed and tx.ok(u)]
         if not launches or not alone:
             return steps
         self._control(tx, "parameters", self._param_ctls(alone))
         return [(s, u) for s, u in steps if u in mixed]
+
+    def _starts_process(self, s: PlanStep) -> bool:
+        """Whether a step starts a process: a swap to a pre-started replacement that is
+        running (standby, hot standby) does not."""
+        name = _launches(s)
+        if name is None:
+            return False
+        strategy = self.replacement.strategy_for(name)
+        return not (isinstance(s, SwapComponent) and strategy in PRE_STARTED
+                    and name in self.standby)
 
     def _param_ctls(self, steps) -> list[Ctl]:
         out = []
@@ -834,8 +844,10 @@ def apply_request(spec: NodeSpec, req: m.NodeRequest) -> NodeSpec:
             return msgspec.structs.replace(spec, active=True)
         case m.Deactivate():
             return msgspec.structs.replace(spec, active=False)
-        case m.SetParams(params=params):
-            return msgspec.structs.replace(spec, params={**spec.params, **params})
+        case m.SetParams(params=params, decl=decl):
+            return msgspec.structs.replace(
+                spec, params={**spec.params, **params}, decl={**spec.decl, **decl}
+            )
         case m.Rewire(port=port, keys=keys):
             ports = dict(spec.ports)
             ports[port] = msgspec.structs.replace(ports[port], keys=list(keys))

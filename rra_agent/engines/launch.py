@@ -18,6 +18,7 @@ import io
 import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import msgspec
 
@@ -35,6 +36,9 @@ def engine_arguments(prog: str, doc: str | None) -> argparse.ArgumentParser:
         "--select", action="append", default=[], help="deployment-time features (comma list)"
     )
     parser.add_argument("--run-dir", help="where logs of this run go")
+    parser.add_argument(
+        "--no-record", action="store_true", help="do not record the run (<run-dir>/record/)"
+    )
     parser.add_argument("--host", default=None, help="this process' host (default: local)")
     parser.add_argument("--name", default=None, help="this engine's name on the bus")
     add_bus_arguments(parser)
@@ -44,6 +48,11 @@ def engine_arguments(prog: str, doc: str | None) -> argparse.ArgumentParser:
 def selection(args: argparse.Namespace) -> list[str]:
     """The ``--select`` names (each a comma list)."""
     return [n.strip() for v in args.select for n in v.split(",") if n.strip()]
+
+
+def record_dir(args: argparse.Namespace) -> Path | None:
+    """The run folder this engine records in (``<run-dir>/record/``), or None."""
+    return Path(args.run_dir) if args.run_dir and not args.no_record else None
 
 
 def warm_up(

@@ -61,6 +61,14 @@ class LeaderWatch:
             newest = max(self.claims.values(), default=0)
             return leader in self.members and epoch > newest
 
+    def holds(self, fence: m.Fence | None) -> bool:
+        """Strictly: the term of a live claim of the role (a claim on its way is not yet;
+        for what only a settled leader sends, e.g. an operator's override)."""
+        if fence is None:
+            return False
+        with self._lock:
+            return self.claims.get((fence.leader, fence.instance)) == fence.epoch
+
     def _on_claim(self, sample: zenoh.Sample) -> None:
         term = parse_claim(str(sample.key_expr).split("/")[-3:])
         if term is None:

@@ -37,14 +37,21 @@ on a 2-core machine, which slowed every other process on the path of an adaptati
 Replicas: every replica computes every measurement (a hot standby); only the leader of the
 ``monitor`` role publishes. Every replica answers a query on ``rra/<system>/ctx/*`` with the
 newest value of each measurement, so a restarted Adaptation Engine resumes from them.
+
+Operators (``rra inject``, `rra_agent.engines.injection`): the leader publishes an
+injection on ``inject/<kind>`` for the nodes that take them, and overrides a measurement
+with a given value for a while; both are ``injection`` events. Its status lists every
+measurement with its newest value, when it was computed and from what (``rra status``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -54,17 +61,30 @@ from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import data_limit
+from rra_agent.bus.keys import check_topic
 from rra_agent.core.monitor import ContextMonitor
 from rra_agent.core.plan import topic_of
 from rra_agent.core.samples import MALFORMED, Refusal
 from rra_agent.deployment import Deployment
 from rra_agent.engines.base import EngineProcess
+from rra_agent.engines.injection import (
+    InjectionError,
+    Overrides,
+    context_view,
+    find,
+    inject_text,
+    typed_value,
+)
 from rra_agent.engines.leaders import LeaderWatch
+from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.engines.ros2 import TopicSources
 from rra_agent.errors import RraError
+from rra_agent.models.measurements import is_ros2_source
 from rra_agent.models.system import parse_endpoint
-from rra_agent.package.functions import function_path, load_function
-from rra_agent.package.functions import import_dotted as import_dotted
-from rra_agent.package.imports import add_package_path
+from rra_agent.package.bundle import ModelBundle
+from rra_agent.package.imports import import_dotted as import_dotted
+from rra_agent.package.imports import measurement_functions as package_measurement_functions
+from rra_agent.record.hooks import MonitorRecorder, open_writer
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "monitor"
@@ -73,29 +93,14 @@ REFRESH = 1.0
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
+_INJ = m.Codec[m.Injection](m.Injection)
+_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
+_REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
-    """Measurement name -> its function: a function of the source data type, or a dotted path
-    (`rra_agent.package.functions`, as a node evaluating a reflex resolves it).
-
-    The package folder is appended to ``sys.path`` (`rra_agent.package.imports`) so a
-    package may ship its own functions.
-    """
-    pkg = dep.package
-    add_package_path([pkg.root])
-    out = {}
-    for meas in pkg.measurements.measurements:
-        types = []
-        for src in meas.inputs:
-            ep = parse_endpoint(src)
-            comp = pkg.system.component(ep.component)
-            port = comp.port(ep.port) if comp else None
-            types.append(port.type if port else None)
-        dotted = function_path(pkg.measurements, meas, types)
-        if dotted is not None:
-            out[meas.name] = load_function(dotted)
-    return out
+    """Measurement name -> its function (`rra_agent.package.imports.measurement_functions`)."""
+    return package_measurement_functions(dep.package)
 
 
 def model_hosts(dep: Deployment, default: str) -> list[str]:
@@ -112,26 +117,43 @@ class ContextMonitorProcess(EngineProcess):
 
     role = NAME
 
-    def __init__(self, dep: Deployment, bus: BusConfig, *, host: str = "local", name: str = NAME):
+    def __init__(
+        self,
+        dep: Deployment,
+        bus: BusConfig,
+        *,
+        host: str = "local",
+        name: str = NAME,
+        run_dir: Path | None = None,
+    ):
         super().__init__(dep, bus, host=host, name=name)
         self.core = ContextMonitor(
             dep.package.measurements, measurement_functions(dep), self._port_types()
         )
         self.core.refusals.observer = self._refused
         #: The largest sample accepted from each source (its port's limit).
-        self.limits = {src: self._limit(src) for src in self.core.sources}
+        self.limits = {
+            src: self._limit(src) for src in self.core.sources if not is_ros2_source(src)
+        }
+        #: The ROS 2 topics it reads (`rra_agent.engines.ros2.TopicSources`), once declared.
+        self.topics: TopicSources | None = None
         self.published = 0
         self.publishers: dict[str, zenoh.Publisher] = {}
         #: The newest measurement of each name (answered to a restarted Adaptation Engine).
         self.latest: dict[str, m.Measurement] = {}
         #: The last one published of each name, and how often one unchanged is sent again.
         self.sent: dict[str, m.Measurement] = {}
-        self.refresh = {
-            meas.name: REFRESH if meas.max_age_ms is None else meas.max_age_ms / 4000.0
-            for meas in dep.package.measurements.measurements
-        }
-        #: Samples waiting to be processed: the newest per source (older ones coalesced).
-        self._pending: dict[str, tuple[Any, float]] = {}
+        self.refresh = _refresh(dep)
+        #: Samples waiting to be processed: the newest per source (older ones coalesced),
+        #: with its send time and raw bytes.
+        self._pending: dict[str, tuple[Any, float, bytes | None]] = {}
+        #: The subscriber of each source (re-declared when a reload changes the sources).
+        self._sources: dict[str, zenoh.Subscriber[None]] = {}
+        self._source_keys: dict[str, tuple[str, int]] = {}
+        #: The run's record: the source samples the leader computed from.
+        self.run_dir = run_dir
+        self.rec: MonitorRecorder | None = None
+        self._prepared: dict[str, Deployment] = {}
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
         #: Every host of the model with its reachability measurements (none, unless the
@@ -152,17 +174,23 @@ class ContextMonitorProcess(EngineProcess):
         #: may run before this session has heard of their tokens).
         self._seed_absent: set[str] = set()
         self._events: zenoh.Publisher | None = None
+        #: Operators' overrides, the computed values they hide, the injection publishers.
+        self.declared = {meas.name: meas for meas in dep.package.measurements.measurements}
+        self.overrides = Overrides(self.refresh)
+        self._shadowed: dict[str, m.Measurement] = {}
+        self._inject_pubs: dict[str, zenoh.Publisher] = {}
 
     def source_key(self, source: str) -> str:
         ep = parse_endpoint(source)
         return self.keys.data(topic_of(self.dep.package.system, ep.component, ep.port))
 
-    def _port_types(self) -> dict[str, str]:
+    def _port_types(self, dep: Deployment | None = None) -> dict[str, str]:
         """``component.port`` -> the type its port declares, for every measured source."""
-        system = self.dep.package.system
+        dep = dep or self.dep
+        system = dep.package.system
         out = {}
-        for meas in self.dep.package.measurements.measurements:
-            for src in meas.inputs:
+        for meas in dep.package.measurements.measurements:
+            for src in meas.inputs if meas.ros2_topic is None else ():
                 ep = parse_endpoint(src)
                 comp = system.component(ep.component)
                 port = comp.port(ep.port) if comp is not None else None
@@ -194,22 +222,29 @@ class ContextMonitorProcess(EngineProcess):
                 detail = f"{size} bytes, more than the {limit} allowed"
                 self.core.refusals.add(Refusal(source, "too_large", detail))
                 return
-            data = self.core.decode(source, sample.payload.to_bytes())
+            raw = sample.payload.to_bytes()
+            data = self.core.decode(source, raw)
             if data is None:
                 return  # refused and counted: the newest good sample stays pending
             att = sample.attachment
             stamp = m.unpack_stamp(att.to_bytes() if att else None) or time.time()
-            with self.lock:
-                self.counters.received += 1
-                if source in self._pending:
-                    self.counters.bump("coalesced")
-                self._pending[source] = (data, stamp)
-                schedule, self._scheduled = not self._scheduled, True
-            if schedule and not self.loop.run_or_post(self._process):
-                with self.lock:
-                    self._scheduled = False
+            self._take(source, data, stamp, raw)
 
         return callback
+
+    def _take(self, source: str, data: Any, stamp: float, raw: bytes | None = None) -> None:
+        """A good sample of ``source`` (a port's, or a ROS 2 topic's, decoded already: then
+        ``raw`` is None and the record keeps it as msgpack): the newest pending one of its
+        source; computing is scheduled if it is not already."""
+        with self.lock:
+            self.counters.received += 1
+            if source in self._pending:
+                self.counters.bump("coalesced")
+            self._pending[source] = (data, stamp, raw)
+            schedule, self._scheduled = not self._scheduled, True
+        if schedule and not self.loop.run_or_post(self._process):
+            with self.lock:
+                self._scheduled = False
 
     def _on_latest(self, query: zenoh.Query) -> None:
         with self.lock:
@@ -222,13 +257,19 @@ class ContextMonitorProcess(EngineProcess):
         with self.lock:
             batch, self._pending = self._pending, {}
             self._scheduled = False
-        for source, (data, stamp) in batch.items():
+        rec = self.rec if self.leading else None
+        for source, (data, stamp, raw) in batch.items():
+            if rec is not None:
+                rec.sample(source, raw if raw is not None else _plain(data), stamp)
             for c in self.core.on_sample(source, data, stamp):
                 self._emit(
                     m.Measurement(name=c.name, value=c.value, stamp=time.time(), sources=c.sources)
                 )
 
     def _emit(self, msg: m.Measurement) -> None:
+        if msg.name in self.overrides.active:  # an operator's value is in effect
+            self._shadowed[msg.name] = msg
+            return
         with self.lock:
             self.latest[msg.name] = msg
         if not self.leading:
@@ -274,7 +315,12 @@ class ContextMonitorProcess(EngineProcess):
     def _on_state(self, sample: zenoh.Sample) -> None:
         state = self.leader_state(sample, self.resolution)
         if state is not None:
-            self.loop.post(lambda: self._availability(state.unavailable))
+            self.loop.post(lambda: self._resolution_state(state))
+
+    def _resolution_state(self, state: m.EngineState) -> None:
+        """The leader's models first (a reload), then what is unavailable."""
+        self._follow_models(state.models)
+        self._availability(state.unavailable)
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
         """A new value of each availability measurement whose component changed."""
@@ -293,8 +339,11 @@ class ContextMonitorProcess(EngineProcess):
         election ends; a value computed then would otherwise reach the rules only with the
         source's next sample, up to a second later for a 1 Hz battery state), and the hosts'
         reachability (a value its predecessor published may predate what this replica has
-        seen since)."""
+        seen since). A replica that stops leading drops its operators' overrides."""
+        if self.rec is not None:
+            self.rec.lead(leading, self.fence)
         if not leading:
+            self._end_overrides(list(self.overrides.active), "its Context Monitor stopped leading")
             return
         derived = {n for names in self.reachability.values() for n in names}
         derived |= {n for names in self.availability.values() for n in names}
@@ -356,23 +405,25 @@ class ContextMonitorProcess(EngineProcess):
 
     # ---- lifecycle ---------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
+        writer = open_writer(self.run_dir, self.name, self.role, self.dep, self.host)
+        self.rec = MonitorRecorder(writer) if writer is not None else None
         self.viz = open_logger(self.name)
-        for meas in self.dep.package.measurements.measurements:
-            self.publishers[meas.name] = session.declare_publisher(
-                self.keys.ctx(meas.name),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                priority=zenoh.Priority.INTERACTIVE_HIGH,
-                express=True,
+        self._declare_publishers(session)
+        self._subscribe_sources(session)
+        entities: list[Any] = [session.declare_queryable(self.keys.ctx_all, self._on_latest)]
+        if self.ros2 is not None:
+            self.topics = TopicSources(
+                self.ros2.node,
+                self.dep.package.measurements.measurements,
+                self._take,
+                self.core.refusals.add,
             )
-        entities: list[Any] = [
-            session.declare_subscriber(self.source_key(src), self._on_sample(src))
-            for src in self.core.sources
-        ]
-        entities.append(session.declare_queryable(self.keys.ctx_all, self._on_latest))
+            entities.append(self.topics)
+        self._events = session.declare_publisher(
+            self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        entities.append(self._events)
         if self.reachability:
-            self._events = session.declare_publisher(
-                self.keys.events, congestion_control=zenoh.CongestionControl.BLOCK
-            )
             # With history: a token that exists already is delivered too (the seed's query
             # may run before this session has heard of it, and would call it unreachable).
             entities.append(
@@ -381,23 +432,279 @@ class ContextMonitorProcess(EngineProcess):
                 )
             )
             self._seed_hosts(session)
-        if self.availability:
-            self.resolution = LeaderWatch(session, self.keys, "resolution")
-            entities += [
-                self.resolution,
-                session.declare_subscriber(self.keys.state("resolution"), self._on_state),
-            ]
+        # The Resolution Engine leader's state: availability, and the models it runs.
+        self.resolution = LeaderWatch(session, self.keys, "resolution")
+        entities += [
+            self.resolution,
+            session.declare_subscriber(self.keys.state("resolution"), self._on_state),
+        ]
         return entities
 
+    def _declare_publishers(self, session: zenoh.Session) -> None:
+        for meas in self.dep.package.measurements.measurements:
+            if meas.name not in self.publishers:
+                self.publishers[meas.name] = session.declare_publisher(
+                    self.keys.ctx(meas.name),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.INTERACTIVE_HIGH,
+                    express=True,
+                )
+
+    def _subscribe_sources(self, session: zenoh.Session) -> None:
+        """A subscriber for every source of the model (those it has already are kept)."""
+        wanted = {
+            src: (self.source_key(src), self.limits[src])
+            for src in self.core.sources
+            if not is_ros2_source(src)
+        }
+        for src in list(self._sources):
+            if src not in wanted or self._source_keys.get(src) != wanted[src]:
+                with contextlib.suppress(Exception):
+                    self._sources.pop(src).undeclare()
+        for src, key in wanted.items():
+            if src not in self._sources:
+                self._sources[src] = session.declare_subscriber(key[0], self._on_sample(src))
+        self._source_keys = wanted
+
     def status(self) -> dict[str, Any]:
-        return {"measurements": {n: msg.value for n, msg in self.latest.items()}}
+        with self.lock:
+            latest = dict(self.latest)
+        return {
+            "measurements": {n: msg.value for n, msg in latest.items()},
+            "context": context_view(self.declared.values(), latest),
+            "models": self.dep.models,
+        }
+
+    def snapshot(self) -> dict[str, Any]:
+        """The status, with the measurements as they are now (not as at the last tick)."""
+        with self.lock:
+            latest = dict(self.latest)
+        return {**super().snapshot(), "context": context_view(self.declared.values(), latest)}
 
     def tick(self, now: float) -> None:
+        if self.overrides.active:
+            self._overrides_due(now)
         self.publish_status()
 
+    # ---- operators' injections (main thread) -------------------------------------------
+    def serve(self, request: m.EngineRequest) -> m.Reply:
+        match request:
+            case m.Inject() | m.OverrideMeasurement():
+                if not self.leading:
+                    return m.Err(message=f"{self.name} does not lead", code="not_leader")
+                try:
+                    if isinstance(request, m.Inject):
+                        return self._inject(request)
+                    return self._override(request)
+                except InjectionError as e:
+                    self.refuse("injection", str(e))
+                    return m.Err(message=str(e), code=e.code)
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare(bundle)
+        return super().serve(request)
+
+    def _inject(self, req: m.Inject) -> m.Reply:
+        """Publish an injection where the nodes that take them listen; an event."""
+        try:
+            key = self.keys.inject(check_topic(req.kind))
+        except ValueError as e:
+            raise InjectionError(f"{req.kind!r} is no injection kind: {e}") from None
+        pub = self._inject_pubs.get(key)
+        if pub is None:
+            assert self.session is not None
+            pub = self._inject_pubs[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+        deadline = time.monotonic() + 0.25  # a new publisher learns its subscribers at once
+        while not _matching(pub) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        if not _matching(pub):
+            raise InjectionError(
+                f"no process of system {self.dep.system} takes injections of kind "
+                f"{req.kind}: nothing injected",
+                code="nobody",
+            )
+        msg = msgspec.structs.replace(req, stamp=time.time())
+        pub.put(_INJ.encode(msg))
+        who = req.operator or "unknown"
+        self._injection_event(f"operator {who} injected {inject_text(req)}", who, msg)
+        return m.Ok(result={"injected": inject_text(req), "key": key, "stamp": msg.stamp})
+
+    def _override(self, req: m.OverrideMeasurement) -> m.Reply:
+        """Publish the operator's value of a measurement instead of the computed one."""
+        meas = find(self.declared, req.name, self.dep.system)
+        who = req.operator or "unknown"
+        if req.duration == 0:
+            ended = req.name in self.overrides.active
+            self._end_overrides([req.name], f"operator {who} ended it")
+            return m.Ok(result={"name": req.name, "ended": ended})
+        value = typed_value(meas, req.value)
+        o = self.overrides.set(req.name, value, who, time.time(), self.loop.clock(), req.duration)
+        with self.lock:
+            shadowed = self.latest.get(req.name)
+        if shadowed is not None and not shadowed.override:
+            self._shadowed.setdefault(req.name, shadowed)
+        self._overrides_due(self.loop.clock())
+        text = f"operator {who} overrode measurement {req.name} = {value!r} for {req.duration:g} s"
+        inj = m.Inject(kind="measurement", target=req.name, stamp=time.time(), operator=who,
+                       args={"value": value, "duration": req.duration})  # fmt: skip
+        self._injection_event(text, who, inj)
+        self.publish_status()
+        return m.Ok(result={"name": req.name, "value": value, "until": o.until, "operator": who})
+
+    def _overrides_due(self, now: float) -> None:
+        """Re-send the overrides due, end the expired ones, and wake for the next."""
+        send, ended = self.overrides.due(now)
+        for name in send:
+            msg = self.overrides.message(name, time.time(), self.fence)
+            with self.lock:
+                self.latest[name] = msg
+            if self.leading:
+                self._publish(msg)
+        if ended:
+            self._end_overrides(ended, "its time is up")
+        at = self.overrides.next_at()
+        if at is not None:
+            self.loop.due(at)
+
+    def _end_overrides(self, names: list[str], why: str) -> None:
+        """End these overrides: the newest computed value is in effect again."""
+        for name in names:
+            o = self.overrides.active.pop(name, None)
+            computed = self._shadowed.pop(name, None)
+            with self.lock:
+                if computed is not None:
+                    self.latest[name] = computed
+                elif o is not None:
+                    self.latest.pop(name, None)
+            if o is None:
+                continue
+            if computed is not None and self.leading:
+                self._publish(computed)
+            now = "computed values again" if computed is not None else "no computed value yet"
+            text = f"override of measurement {name} by {o.operator} ended ({why}): {now}"
+            inj = m.Inject(kind="measurement", target=name, stamp=time.time(),
+                           operator=o.operator, args={"ended": True})  # fmt: skip
+            self._injection_event(text, o.operator, inj)
+        self.publish_status()
+
+    def _injection_event(self, text: str, who: str, inj: m.Inject) -> None:
+        print(f"rra {self.name}: {text}", flush=True)
+        if self._events is None or not self.leading:
+            return
+        ev = m.AdaptationEvent(stamp=time.time(), kind="injection", message=text,
+                               source=self.name, operator=who, injection=inj)  # fmt: skip
+        self._events.put(_EVT.encode(ev))
+
     def stopping(self) -> None:
+        for pub in self._inject_pubs.values():
+            with contextlib.suppress(Exception):
+                pub.undeclare()
+        for sub in self._sources.values():
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._sources.clear()
         if self.viz:
             self.viz.close()
+        if self.rec is not None:
+            self.rec.writer.close(end=time.time())
+
+    # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def starting(self) -> None:
+        """A replica started after a reload runs the models the system runs."""
+        assert self.session is not None
+        for reply in self.session.get(self.keys.engine_ctl("resolution"),
+                                      payload=_REQ.encode(m.GetState()), timeout=1.0):  # fmt: skip
+            if reply.ok is None:
+                continue
+            try:
+                answer = _REPLY.decode(reply.ok.payload.to_bytes())
+                if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+                    self._follow_models(str(answer.result.get("models", "")))
+                    return
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """Load these models and import their measurement functions (nothing changes yet)."""
+        try:
+            dep = deploy_bundle(bundle, self.dep)
+            measurement_functions(dep)
+        except (RraError, ImportError, AttributeError, ValueError) as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        self._prepared[bundle.digest] = dep
+        return m.Ok(result={"models": bundle.digest})
+
+    def _follow_models(self, digest: str) -> None:
+        """Run the models the Resolution Engine leader runs (prepared, else loaded now)."""
+        if not digest or digest == self.dep.models:
+            return
+        try:
+            dep = self._prepared.pop(digest, None)
+            if dep is None:
+                dep = deploy_bundle(find_bundle(digest, self.run_dir, self.session, self.keys),
+                                    self.dep)  # fmt: skip
+            self.switch_models(dep)
+        except (RraError, ImportError, AttributeError, ValueError) as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+
+    def switch_models(self, dep: Deployment) -> None:
+        """Compute the new measurements from now on: a new core, subscribers for the new
+        sources, publishers for the new measurements; values of removed ones forgotten."""
+        core = ContextMonitor(dep.package.measurements, measurement_functions(dep),
+                              self._port_types(dep))  # fmt: skip
+        core.refusals = self.core.refusals
+        previous, self.dep, self.core = self.dep.models, dep, core
+        self.limits = {src: self._limit(src) for src in core.sources if not is_ros2_source(src)}
+        self.refresh = _refresh(dep)
+        names = {meas.name for meas in dep.package.measurements.measurements}
+        with self.lock:
+            self.latest = {n: v for n, v in self.latest.items() if n in names}
+        self.sent = {n: v for n, v in self.sent.items() if n in names}
+        self._derived(dep)
+        if self.session is not None:
+            self._declare_publishers(self.session)
+            self._subscribe_sources(self.session)
+        self._prepared.clear()
+        if self.rec is not None:
+            self.rec.reload(dep.models, previous)
+        print(f"rra {self.name}: models {dep.models} (were {previous})", flush=True)
+
+    def _derived(self, dep: Deployment) -> None:
+        """The reachability and availability measurements of the new models."""
+        hosts: dict[str, list[str]] = {h: [] for h in model_hosts(dep, self.host)}
+        for meas in dep.package.measurements.measurements:
+            if meas.reachable is not None:
+                hosts.setdefault(meas.reachable, []).append(meas.name)
+        self.reachability = hosts
+        self.availability = {}
+        for meas in dep.package.measurements.measurements:
+            if meas.available is not None:
+                self.availability.setdefault(meas.available, []).append(meas.name)
+        self.available = {c: v for c, v in self.available.items() if c in self.availability}
+
+
+def _plain(data: Any) -> bytes:
+    """A decoded sample as msgpack, for the record (arrays as lists, the rest as text)."""
+    return msgspec.msgpack.encode(data, enc_hook=_plain_value)
+
+
+def _plain_value(o: Any) -> Any:
+    return o.tolist() if hasattr(o, "tolist") else str(o)
+
+
+def _refresh(dep: Deployment) -> dict[str, float]:
+    """How often each measurement is sent again unchanged (a quarter of its max age)."""
+    return {
+        meas.name: REFRESH if meas.max_age_ms is None else meas.max_age_ms / 4000.0
+        for meas in dep.package.measurements.measurements
+    }
+
+
+def _matching(pub: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches the publisher (zenoh's status object, or a bool)."""
+    status: Any = pub.matching_status
+    return bool(getattr(status, "matching", status))
 
 
 def arguments() -> argparse.ArgumentParser:
@@ -416,7 +723,7 @@ def warm_up(argv: list[str]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m rra_agent.engines.monitor --package PKG --select F,...``."""
-    from rra_agent.engines.launch import engine_setup, parse_engine_args
+    from rra_agent.engines.launch import engine_setup, parse_engine_args, record_dir
 
     args = parse_engine_args(arguments, argv)
     setup = engine_setup(args, NAME)
@@ -424,7 +731,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     dep, bus, host, name = setup
     try:
-        proc = ContextMonitorProcess(dep, bus, host=host, name=name)
+        proc = ContextMonitorProcess(dep, bus, host=host, name=name, run_dir=record_dir(args))
     except (RraError, ImportError, AttributeError, ValueError) as e:
         print(f"rra monitor: {e}", file=sys.stderr)
         return 2

@@ -74,9 +74,19 @@ from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Ctl, Executor, Outcome, StepFailed, UnitFailure, spec_for
 from rra_agent.engines.leaders import LeaderWatch
+from rra_agent.engines.models import deploy_bundle, find_bundle
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.engines.reflexes import ReflexCompiler, ReflexKeeper, Situation
+from rra_agent.engines.reload import (
+    changed_decls,
+    commit_hosts,
+    engine_replicas,
+    prepare_all,
+    running_view,
+    system_changed,
+)
 from rra_agent.errors import RraError
+from rra_agent.model_changes import compare
 from rra_agent.models.system import (
     Component,
     ParamValue,
@@ -84,6 +94,9 @@ from rra_agent.models.system import (
     SystemModel,
     parse_endpoint,
 )
+from rra_agent.package.bundle import ModelBundle
+from rra_agent.record.hooks import ResolutionRecorder, open_writer
+from rra_agent.record.run import keep_models, read_models
 from rra_agent.viz.rerun_log import Logger, open_logger
 
 NAME = "resolution"
@@ -117,6 +130,7 @@ REFLEX_SYNC = 1.0
 
 class ResolutionEngineProcess(EngineProcess):
     role = NAME
+    ros2_events = True  # its leader puts the events on ROS 2 (`rra_agent.engines.ros2`)
     tick_period = 0.1
 
     def __init__(
@@ -131,9 +145,18 @@ class ResolutionEngineProcess(EngineProcess):
         start_timeout: float = 15.0,
         reconcile_period: float = 1.0,
         reflexes: bool = True,
+        record: bool = True,
     ) -> None:
         super().__init__(dep, bus, host=host, name=name)
         self.run_dir = run_dir
+        #: The run's record: the leader's states and the operators' commands.
+        self.rec: ResolutionRecorder | None = None
+        self._recording = record
+        #: The digests of the models before the current ones (``rra reload --undo``), the
+        #: bundles known here, and the models prepared for a reload.
+        self.history: list[str] = []
+        self._bundles: dict[str, ModelBundle] = {dep.models: dep.bundle} if dep.bundle else {}
+        self._prepared: dict[str, Deployment] = {}
         self.retry_after = retry_after
         self.start_timeout = start_timeout
         self.reconcile_period = reconcile_period
@@ -287,6 +310,8 @@ class ResolutionEngineProcess(EngineProcess):
             self.sink.record(ev)
             if self.viz:
                 self.viz.event(ev)
+        if ev.injection is not None:
+            self._record_injection(ev.injection, ev.operator)
 
     def _on_host(self, sample: zenoh.Sample) -> None:
         """A host agent appeared (or came back) or went away: reconcile soon."""
@@ -317,6 +342,8 @@ class ResolutionEngineProcess(EngineProcess):
         old = self.mirror
         if old is not None and old.fence == state.fence and state.version < old.version:
             return  # an older publication of the same leader, overtaken
+        self._follow_models(state.models)
+        self.history = list(state.history)
         self.mirror = state
         self.selection, self.cv = frozenset(state.selection), dict(state.cv)
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
@@ -377,6 +404,8 @@ class ResolutionEngineProcess(EngineProcess):
     def on_leadership(self, leading: bool) -> None:
         self.actuator.fence = self.fence if leading else None
         self.actuator.superseded = False
+        if self.rec is not None:
+            self.rec.lead(leading, self.fence)
         if not leading:
             return
         fence = self.fence
@@ -443,6 +472,13 @@ class ResolutionEngineProcess(EngineProcess):
                 "stale_fence",
                 f"selection {msg.seq} from {fence.leader} (epoch {fence.epoch}): "
                 f"a newer Adaptation Engine leader has decided since",
+            )
+            return None
+        if msg.models != self.dep.models:
+            self.refuse(
+                "models",
+                f"selection {msg.seq} from {fence.leader} was decided under models "
+                f"{msg.models or '(none named)'}; this engine runs {self.dep.models}",
             )
             return None
         fm, deployment = self.dep.package.features, self.dep.selection
@@ -730,7 +766,9 @@ class ResolutionEngineProcess(EngineProcess):
             case m.SetParam(node=node, params=params, reset=reset):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
-                return self.set_params(node, params, reset)
+                answer = self.set_params(node, params, reset, request)
+                what = {"node": node, "params": params, "reset": reset}
+                return self._recorded("param", what, "", answer)
             case m.GetState():
                 return m.Ok(result=msgspec.to_builtins(self.engine_state()))
             case m.GetParams(node=node):
@@ -740,7 +778,15 @@ class ResolutionEngineProcess(EngineProcess):
             case m.Retry(components=components, operator=who):
                 if not self.leading:
                     return m.Err(message=f"{self.name} does not lead", code="not_leader")
-                return self.retry(list(components), who)
+                return self._recorded("retry", {"components": components}, who,
+                                      self.retry(list(components), who))  # fmt: skip
+            case m.Reload():
+                return self._recorded("reload", {"undo": request.undo, "base": request.base},
+                                      request.operator, self.reload(request))  # fmt: skip
+            case m.GetModels(digest=digest):
+                return self.get_models(digest)
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare(bundle)
         return super().serve(request)
 
     def _no_component(self, node: str) -> m.Err:
@@ -782,7 +828,13 @@ class ResolutionEngineProcess(EngineProcess):
             }
         )
 
-    def set_params(self, node: str, params: dict[str, Any], reset: list[str]) -> m.Reply:
+    def set_params(
+        self,
+        node: str,
+        params: dict[str, Any],
+        reset: list[str],
+        request: m.SetParam | None = None,
+    ) -> m.Reply:
         component = next((c for c in self.dep.configured.components if c.name == node), None)
         if component is None:
             return self._no_component(node)
@@ -806,7 +858,7 @@ class ResolutionEngineProcess(EngineProcess):
             self.overrides = before
             return m.Err(message=f"could not set {node}: {outcome.error}", code="failed")
         self._changed()
-        self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
+        self._param_event(node, values, reset, request)
         return m.Ok(
             result={
                 "node": node,
@@ -816,6 +868,20 @@ class ResolutionEngineProcess(EngineProcess):
                 "state": self.node_state(node),
             }
         )
+
+    def _param_event(
+        self, node: str, values: dict[str, Any], reset: list[str], request: m.SetParam | None
+    ) -> None:
+        """A ``param`` event, or an ``injection`` one for ``rra inject set_params``."""
+        if request is None or not request.injection:
+            self._event("param", f"operator set {node}: {values or {}} reset {reset or []}", None)
+            return
+        who = request.operator or "unknown"
+        text = f"operator {who} injected set_params {node}: " + (
+            " ".join(f"{k}={v!r}" for k, v in sorted(values.items())) or "-"
+        )
+        injection = m.Inject(kind="set_params", target=node, args=values, stamp=time.time())
+        self._event("injection", text, None, operator=who, injection=injection)
 
     def _apply_overrides(self, node: str) -> Outcome | None:
         """Push the changed desired parameters to the running (or standby) node."""
@@ -1001,6 +1067,8 @@ class ResolutionEngineProcess(EngineProcess):
             degraded=list(self.degraded),
             stamp=self._stamp,
             reflexes=self.reflexes.state(),
+            models=self.dep.models,
+            history=list(self.history),
         )
 
     def _changed(self) -> None:
@@ -1011,6 +1079,8 @@ class ResolutionEngineProcess(EngineProcess):
         self._stamp = time.time()
         state = self._publish_state()
         self._persist(state)
+        if self.rec is not None and self.leading:
+            self.rec.state(state)
         self.publish_status()
 
     def _publish_state(self) -> m.EngineState:
@@ -1046,6 +1116,8 @@ class ResolutionEngineProcess(EngineProcess):
         state = self._saved_state()
         if state is None:
             return
+        self._follow_models(state.models)  # the models of that state (a reload before)
+        self.history = list(state.history)
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
         self._take_state(state)
@@ -1086,6 +1158,7 @@ class ResolutionEngineProcess(EngineProcess):
             # What was decided is not all in effect: a plan failed in part.
             "failed": bool(self.degraded),
             "reflexes": self.reflexes.status(),
+            "models": self.dep.models,
         }
 
     def _params_apart(self) -> dict[str, dict[str, dict[str, Any]]]:
@@ -1121,6 +1194,8 @@ class ResolutionEngineProcess(EngineProcess):
         outcome: str = "",
         plan: Outcome | None = None,
         durations: dict[str, float] | None = None,
+        operator: str = "",
+        injection: m.Inject | None = None,
     ) -> None:
         if outcome in ("failed", "rolled_back") and self.actuator.superseded:
             # Not a failure of the plan: another leader acted first (both claimed at once).
@@ -1137,12 +1212,15 @@ class ResolutionEngineProcess(EngineProcess):
             level=level,
             source=self.name,
             cause=list(msg.cause) if msg else [],
+            why=list(msg.why) if msg else [],
             plan=[rec.line() for rec in plan.records] if plan else [],
             outcome=outcome,  # type: ignore[arg-type]
             durations=durations or {},
             seq=self.seq,
             fence=self.fence,
             selection=msg.seq if msg else None,
+            operator=operator,
+            injection=injection,
         )
         if self.sink is not None:
             self.sink.emit(event, publish=self.leading)
@@ -1216,6 +1294,9 @@ class ResolutionEngineProcess(EngineProcess):
 
     # ---- lifecycle ---------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
+        writer = open_writer(self.run_dir if self._recording else None, self.name, self.role,
+                             self.dep, self.host)  # fmt: skip
+        self.rec = ResolutionRecorder(writer) if writer is not None else None
         self.viz = open_logger(self.name)
         log = self.run_dir / "events.jsonl" if self.run_dir else None
         self.sink = EventSink(session, self.keys.events, log)
@@ -1347,6 +1428,181 @@ class ResolutionEngineProcess(EngineProcess):
             self.sink.close()
         if self.viz:
             self.viz.close()
+        if self.rec is not None:
+            self.rec.writer.close(end=time.time())
+
+    # ---- the run's record (docs/recording.md) -----------------------------------------------
+    def _recorded(self, kind: str, args: dict[str, Any], who: str, reply: m.Reply) -> m.Reply:
+        """An operator's command in the record, with its outcome (the leader's)."""
+        if self.rec is not None and self.leading:
+            outcome = "ok" if isinstance(reply, m.Ok) else f"{reply.code}: {reply.message}"
+            self.rec.command(kind, msgspec.to_builtins(args), who, outcome)
+        return reply
+
+    def _record_injection(self, msg: m.Inject, operator: str) -> None:
+        """An operator's injection (its ``injection`` event), in the record. The record does
+        not subscribe to the injections themselves: ``rra inject`` refuses a kind no process
+        takes, and a recorder listening would be taken for one."""
+        if self.rec is None or not self.leading:
+            return
+        args = {"kind": msg.kind, "target": msg.target, "args": msg.args, "stamp": msg.stamp}
+        self.rec.command("inject", args, operator, "")
+
+    # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
+    def reload(self, req: m.Reload) -> m.Reply:
+        """Check the new models against what runs, have every replica and host agent
+        prepare them, switch, and apply what they change (main thread: after any plan in
+        progress). Nothing changes when anything refuses."""
+        if not self.leading or not self.deployed:
+            return m.Err(message=f"{self.name} does not lead (or has not deployed yet)",
+                         code="not_leader")  # fmt: skip
+        try:
+            bundle = self._reload_bundle(req)
+            if bundle.digest == self.dep.models:
+                return m.Ok(result={"models": bundle.digest, "previous": bundle.digest,
+                                    "changes": [], "unchanged": True})  # fmt: skip
+            new = self._deploy_models(bundle)
+        except RraError as e:
+            return m.Err(message=str(e), code="invalid")
+        comparison = compare(self.dep, new, self._running())
+        if not comparison.allowed:
+            lines = [str(e).splitlines()[0] for e in comparison.refusals]
+            return m.Err(message="\n".join(lines), code="refused")
+        session: Any = self.session
+        changed = system_changed(self.dep, new)
+        hosts = [h for h in self.hosts if self.reachable(h)] if changed else []
+        replicas = [r for r in engine_replicas(session, self.keys) if r != self.name]
+        refused, silent = prepare_all(
+            session, self.keys, bundle, self.fence, replicas=replicas, hosts=hosts
+        )
+        silent_hosts = [s for s in silent if s.startswith("host ")]
+        if refused or silent_hosts:
+            commit_hosts(session, self.keys, self.dep.models, self.fence, hosts)
+            why = "; ".join(refused + [f"{s} did not answer" for s in silent_hosts])
+            return m.Err(message=f"not reloaded: {why}", code="refused")
+        return self._commit(new, comparison.changes, req.undo)
+
+    def _reload_bundle(self, req: m.Reload) -> ModelBundle:
+        if req.undo:
+            if not self.history:
+                raise RraError("nothing to undo: no reload since the system started")
+            return self._bundle(self.history[-1])
+        if req.bundle is None:
+            raise RraError("a reload needs the models (or --undo)")
+        bundle = req.bundle.verified()
+        if req.base and req.base != self.dep.models:
+            raise RraError(
+                f"the running models changed since the edit was checked (now {self.dep.models}, "
+                f"checked against {req.base}): run rra reload again"
+            )
+        return bundle
+
+    def _bundle(self, digest: str) -> ModelBundle:
+        if digest in self._bundles:
+            return self._bundles[digest]
+        if self.run_dir is None:
+            raise RraError(f"models {digest} are not kept here")
+        return read_models(self.run_dir, digest)
+
+    def _deploy_models(self, bundle: ModelBundle) -> Deployment:
+        """Load the new models (kept in the run's record first: replicas may read them)."""
+        if self.run_dir is not None:
+            keep_models(self.run_dir, bundle)
+        self._bundles[bundle.digest] = bundle
+        return deploy_bundle(bundle, self.dep)
+
+    def _running(self) -> Any:
+        return running_view(self.executor.running, self.executor.standby, self.selection)
+
+    def _commit(self, new: Deployment, changes: list[str], undo: bool) -> m.Reply:
+        """Switch to ``new``: publish the state naming it (the commit every replica follows),
+        tell the host agents, apply the plan it implies and the new parameter bounds."""
+        old, t0 = self.dep, time.perf_counter()
+        self.switch_models(new)
+        self.history = self.history[:-1] if undo else [*self.history, old.models][-10:]
+        self._changed()
+        session: Any = self.session
+        commit_hosts(session, self.keys, new.models, self.fence,
+                     [h for h in self.hosts if self.reachable(h)])  # fmt: skip
+        outcome = self.converge()
+        failed = self._push_decls(old, new)
+        what = "; ".join(changes) or "nothing the engines use"
+        text = (f"{'undo: ' if undo else ''}models {new.models} (were {old.models}): {what}"
+                + (f"; bounds not applied to {', '.join(failed)}" if failed else ""))  # fmt: skip
+        self._event("reload", text, None, level="warning" if failed else "info")
+        print(f"rra {self.name}: reload: {text}", flush=True)
+        plan = [rec.line() for rec in outcome.records] if outcome is not None else []
+        return m.Ok(result={
+            "models": new.models, "previous": old.models, "changes": changes, "plan": plan,
+            "seconds": time.perf_counter() - t0,
+        })  # fmt: skip
+
+    def _push_decls(self, old: Deployment, new: Deployment) -> list[str]:
+        """New parameter bounds to the running nodes (no restart); the nodes that refused."""
+        from rra_agent.engines.executor import Ctl
+
+        decls = changed_decls(old, new, self.executor.running)
+        if not decls:
+            return []
+        batch = [Ctl(self.executor.running[n], m.SetParams(params={}, decl=d))
+                 for n, d in decls.items()]  # fmt: skip
+        replies = self.actuator.control(batch)
+        for ctl, reply in zip(batch, replies, strict=True):
+            if isinstance(reply, m.Ok):
+                self.executor.running[ctl.spec.name] = msgspec.structs.replace(
+                    ctl.spec, decl={**ctl.spec.decl, **decls[ctl.spec.name]})  # fmt: skip
+        return [c.spec.name for c, r in zip(batch, replies, strict=True) if isinstance(r, m.Err)]
+
+    def switch_models(self, new: Deployment) -> None:
+        """Run ``new`` from now on (a reload, or a standby following its leader)."""
+        previous, self.dep = self.dep.models, new
+        if new.bundle is not None:
+            self._bundles[new.models] = new.bundle
+        fm = new.package.features
+        self.needs = requirements(fm, new.package.runtime)
+        attributes = {name for name, (_, a) in fm.attributes.items() if a.kind == "cv"}
+        self.cv = {k: v for k, v in self.cv.items() if k in attributes}
+        self.effective_cv = {k: v for k, v in self.effective_cv.items() if k in attributes}
+        if hasattr(self, "executor"):
+            self.executor.replacement = new.package.runtime.replacement
+            self.executor.standby_inputs = self.standby_inputs
+            self.actuator.container_of = {
+                c.name: c.container for c in new.configured.components if c.container
+            }
+        self._prepared.clear()
+        if self.rec is not None:
+            self.rec.reload(new.models, previous)
+
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """A standby: load the models a reload brings (nothing changes yet)."""
+        try:
+            self._prepared[bundle.digest] = deploy_bundle(bundle, self.dep)
+        except RraError as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        self._bundles[bundle.digest] = bundle
+        return m.Ok(result={"models": bundle.digest})
+
+    def _follow_models(self, digest: str) -> None:
+        """A standby runs the models its leader runs (prepared, else loaded now)."""
+        if not digest or digest == self.dep.models:
+            return
+        try:
+            new = self._prepared.pop(digest, None)
+            if new is None:
+                bundle = self._bundles.get(digest) or find_bundle(
+                    digest, self.run_dir, self.session, self.keys)  # fmt: skip
+                new = deploy_bundle(bundle, self.dep)
+        except RraError as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+            return
+        self.switch_models(new)
+
+    def get_models(self, digest: str) -> m.Reply:
+        try:
+            bundle = self._bundle(digest or self.dep.models)
+        except RraError as e:
+            return m.Err(message=str(e), code="unknown")
+        return m.Ok(result=msgspec.to_builtins(bundle))
 
 
 #: The first word of a failed start that says the node itself crashed (its host agent saw
@@ -1441,6 +1697,7 @@ def main(argv: list[str] | None = None) -> int:
         start_timeout=args.start_timeout,
         reconcile_period=args.reconcile_period,
         reflexes=not args.no_reflexes,
+        record=not args.no_record,
     )
     return engine.run()
 

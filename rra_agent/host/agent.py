@@ -51,6 +51,8 @@ from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.session import open_session
 from rra_agent.core.election import Term, newer
+from rra_agent.deployment import Deployment
+from rra_agent.engines.models import deploy_bundle
 from rra_agent.errors import RraError
 from rra_agent.host import links, scheduling, unique
 from rra_agent.host.catalog import Catalog, Refused, check_name
@@ -58,6 +60,7 @@ from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
 from rra_agent.host.supervisor import LIVE, Notice, Proc, State, StopPolicy, Supervisor, Transition
 from rra_agent.models.system import Scheduling
+from rra_agent.package.bundle import ModelBundle
 
 TICK = 0.02
 _REQ = m.Codec[m.HostRequest](m.HostRequest)
@@ -87,8 +90,13 @@ class HostAgent:
         stop: StopPolicy | None = None,
         clock: Callable[[], float] = time.monotonic,
         engines: bool = False,
+        models: Deployment | None = None,
     ) -> None:
         self.keys = Keys(system)
+        #: The deployment this host's catalog comes from, and the catalog of models a reload
+        #: prepares (admitted beside the current one until the reload commits).
+        self.models = models
+        self._next: tuple[str, Catalog, Deployment] | None = None
         #: This agent starts the system's engines (``rra up``): a system whose engines run
         #: on the bus already is refused at start (`rra_agent.host.unique`).
         self.engines = engines
@@ -428,18 +436,55 @@ class HostAgent:
             case m.Claim(fence=claim):
                 accepted = self._admit(claim)
                 return m.Ok(result={"accepted": accepted, "fence": list(self.fence or ())})
+            case m.PrepareModels(bundle=bundle):
+                return self.prepare_models(bundle)
+            case m.CommitModels(digest=digest):
+                return self.commit_models(digest)
         return m.Err(message=f"unsupported request {type(req).__name__}", code="unsupported")
+
+    # ---- reload: the catalog of new models (``rra reload``) --------------------------------
+    def prepare_models(self, bundle: ModelBundle) -> m.Reply:
+        """Admit what the new models declare besides what the current ones do, until the
+        reload commits (or is abandoned)."""
+        if self.models is None:
+            return m.Err(message=f"host {self.host}: started without a package", code="invalid")
+        try:
+            dep = deploy_bundle(bundle, self.models)
+        except RraError as e:
+            return m.Err(message=f"host {self.host}: {e}", code="invalid")
+        catalog = Catalog(dep.configured, self.host, package_root=dep.package.root,
+                          default_host=self.catalog.default_host)  # fmt: skip
+        catalog.add_builtins(self.catalog.builtins.values())
+        self._next = (bundle.digest, catalog, dep)
+        return m.Ok(result={"models": bundle.digest})
+
+    def commit_models(self, digest: str) -> m.Reply:
+        """Keep only the catalog of the models ``digest`` (the current ones: abandon)."""
+        if self._next is not None and self._next[0] == digest:
+            _, self.catalog, self.models = self._next
+            print(f"rra agent {self.host}: models {digest}", flush=True)
+        self._next = None
+        return m.Ok(result={"models": self.models.models if self.models else ""})
 
     def _admitted(self, req: m.HostRequest) -> m.HostRequest:
         """The request with every spec derived from the model (`Refused` if it may not)."""
         match req:
             case m.StartNode(spec=spec):
-                return msgspec.structs.replace(req, spec=self.catalog.admit(spec))
+                return msgspec.structs.replace(req, spec=self._admit_spec(spec))
             case m.UpdateSpec(specs=specs):
-                return msgspec.structs.replace(req, specs=[self.catalog.admit(s) for s in specs])
+                return msgspec.structs.replace(req, specs=[self._admit_spec(s) for s in specs])
             case m.StopNode(node=name) | m.SignalNode(node=name):
                 check_name(name)
         return req
+
+    def _admit_spec(self, spec: m.NodeSpec) -> m.NodeSpec:
+        """The catalog's spec; during a reload, the new models' if they admit it."""
+        if self._next is not None:
+            try:
+                return self._next[1].admit(spec)
+            except Refused:
+                pass
+        return self.catalog.admit(spec)
 
     def _fenced(self, spec: m.NodeSpec) -> m.NodeSpec:
         """The spec with this agent's newest fence (the node refuses older leaders too)."""
@@ -752,7 +797,8 @@ def run(args) -> int:  # argparse.Namespace
     if args.system and args.system != dep.system:
         raise RraError(f"--system {args.system}: the package's system is {dep.system}")
     catalog = Catalog(
-        dep.configured, args.host, package_root=dep.package.root, default_host=args.hub
+        dep.configured, args.host, package_root=dep.package.root, default_host=args.hub,
+        ros2=dep.package.manifest.ros2,
     )
     schedule_self(dep.package.manifest.agents.scheduling, f"rra agent {args.host}")
     agent = HostAgent(
@@ -763,6 +809,7 @@ def run(args) -> int:  # argparse.Namespace
         hub=args.hub,
         catalog=catalog,
         data_topics=topic_limits(dep.package.system),
+        models=dep,
         **security(args, dep, args.host),
     )
     quiet = getattr(args, "quiet", False)

@@ -28,8 +28,16 @@ import msgspec
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import check_chunk
 from rra_agent.host.forkserver import python_module
-from rra_agent.models.system import Component, SystemModel, coerce_parameter
+from rra_agent.models.manifest import Ros2Settings
+from rra_agent.models.system import (
+    Component,
+    Implementation,
+    SystemModel,
+    coerce_parameter,
+    is_ros2_implementation,
+)
 from rra_agent.node.process import CONTAINER
+from rra_agent.package.ros2 import interfaces_folder, node_name
 
 
 class Refused(Exception):
@@ -57,10 +65,15 @@ class Catalog:
         *,
         package_root: str | Path,
         default_host: bool = False,
+        ros2: Ros2Settings | None = None,
     ) -> None:
         self.system = model.system
         self.host = host
+        self.default_host = default_host
         self.path = [str(Path(package_root).resolve())]
+        #: The package's ``ros2:`` section, and its interface files on this host.
+        self.ros2 = ros2
+        self.interfaces = interfaces_folder(package_root, ros2)
         #: Components placed on this host (those without a host run on the first host).
         self.components: dict[str, Component] = {
             c.name: c
@@ -131,7 +144,7 @@ class Catalog:
             impl
             for c in self.components.values()
             for impl in (c.implementation, *c.implementations.values())
-            if isinstance(impl, str)
+            if isinstance(impl, str) and not is_ros2_implementation(impl)
         )
 
     @property
@@ -178,4 +191,25 @@ class Catalog:
             supervision=c.supervision,
             scheduling=c.scheduling,
             path=list(self.path) if isinstance(impl, str) else [],
+            ros2=self.ros2_spec(c, impl),
+        )
+
+    def ros2_spec(self, c: Component, impl: Implementation) -> m.Ros2Spec | None:
+        """The ROS 2 side of component ``c`` run as ``impl``, from the model (None: it has
+        none)."""
+        if self.ros2 is None or not c.speaks_ros2():
+            return None
+        node = c.ros2
+        return m.Ros2Spec(
+            domain=self.ros2.domain,
+            distro=self.ros2.distro,
+            interfaces=self.interfaces,
+            folder=self.path[0],
+            node=node_name(c),
+            namespace=node.namespace if node else "/",
+            executable=is_ros2_implementation(impl, c),
+            lifecycle=bool(node and node.lifecycle),
+            rewire=node.rewire if node else "relay",
+            timeout=node.timeout if node else 1.0,
+            ports={p.name: p.ros2_type for p in c.ports if p.ros2_type},
         )

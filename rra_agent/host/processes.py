@@ -76,10 +76,19 @@ def _preexec(spec: NodeSpec) -> Callable[[], None]:
     return setup
 
 
-def node_command(spec: NodeSpec) -> list[str]:
+def is_external(spec: NodeSpec) -> bool:
+    """Whether a node is an external command run as it is (``exec``ed): a program of the
+    wire protocol. A ROS 2 executable is run by a node of ours that speaks for it
+    (`rra_agent.node.ros2`), like a Python node."""
     if isinstance(spec.implementation, str):
+        return False
+    return spec.ros2 is None or not spec.ros2.executable
+
+
+def node_command(spec: NodeSpec) -> list[str]:
+    if not is_external(spec):
         return [sys.executable, "-m", "rra_agent.node"]
-    return list(spec.implementation.command)
+    return list(spec.implementation.command)  # type: ignore[union-attr]
 
 
 def _status(raw: int) -> int:
@@ -157,7 +166,7 @@ class LocalHost:
         with contextlib.suppress(OSError):  # a report left by an earlier run is not this one's
             os.unlink(self.report_path(spec.name))
         env = self._env(spec)
-        external = not isinstance(spec.implementation, str)
+        external = is_external(spec)
         offset = log_path.stat().st_size if log_path.exists() else 0
         if self._fork_server_wanted:
             argv = node_command(spec) if external else None
@@ -296,7 +305,7 @@ class LocalHost:
         return env
 
     def _exec(self, spec: NodeSpec, env: dict[str, str], log_path: Path) -> int:
-        cwd = None if isinstance(spec.implementation, str) else spec.implementation.cwd
+        cwd = spec.implementation.cwd if is_external(spec) else None  # type: ignore[union-attr]
         with log_path.open("ab") as log:
             proc = subprocess.Popen(
                 node_command(spec),

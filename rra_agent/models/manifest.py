@@ -6,8 +6,12 @@ default file names below.
 
 from __future__ import annotations
 
+from typing import Literal
+
 from rra_agent.models.base import FrozenModel
 from rra_agent.models.system import Scheduling
+from rra_agent.ros2.errors import BadName
+from rra_agent.ros2.names import check_domain, qualify
 
 MANIFEST = "rra.yaml"
 
@@ -29,6 +33,25 @@ class ReflexSettings(FrozenModel, frozen=True):
     def __post_init__(self) -> None:
         if not self.confirm_ms > 0:
             raise ValueError("reflexes: confirm_ms must be positive")
+class Ros2Settings(FrozenModel, frozen=True):
+    """The ROS 2 side of a system (docs/ros2.md): the ROS domain its ROS 2 nodes share, the
+    distribution whose message definitions they use, and the folder of the package's own
+    interface files (``<interfaces>/<pkg>/msg/<Type>.msg``, ``.../srv/<Name>.srv``, ``*.idl``).
+    With it, rra-agent's nodes and engines are ROS 2 nodes too (rmw_zenoh's tokens), and
+    its adaptation events go on the ROS 2 topic ``events`` (None: not)."""
+
+    domain: int = 0
+    distro: Literal["humble", "iron", "jazzy", "kilted"] = "jazzy"
+    interfaces: str | None = None
+    events: str | None = "/rra/events"
+
+    def __post_init__(self) -> None:
+        try:
+            check_domain(self.domain)
+            if self.events is not None:
+                qualify(self.events)
+        except BadName as e:
+            raise ValueError(str(e)) from None
 
 
 class Manifest(FrozenModel, frozen=True):
@@ -50,3 +73,5 @@ class Manifest(FrozenModel, frozen=True):
     agents: ProcessSettings = ProcessSettings()
     #: Whether and how the engines delegate decisions they have planned to nodes.
     reflexes: ReflexSettings = ReflexSettings()
+    #: The system's ROS 2 side (None: it has none).
+    ros2: Ros2Settings | None = None

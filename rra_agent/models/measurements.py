@@ -24,6 +24,13 @@ its link is lost (within the bus lease). The Context Monitor publishes it like a
 rules can react to a partition (e.g. select an on-board planner when the base station is
 gone).
 
+Or a ROS 2 topic (``source: ros2:/battery``, ``ros2_type: sensor_msgs/msg/BatteryState``,
+``field: percentage``; the package's ``rra.yaml`` has a ``ros2:`` section): the Context
+Monitor subscribes to the topic as rmw_zenoh does and takes ``field`` (a dotted path,
+``header.stamp.sec``, ``cell_voltage.2``) of every sample; a ``function`` gets the whole
+message as a dict. A sample of another type, of another definition of the type or that is
+not CDR of it is refused and counted, like a sample of a port.
+
 Or a component's availability (``available: camera``, type ``bool``): false while an
 implementation of that component is unavailable (it could not start, or kept crashing; the
 Run-time Resolution Engine says so), true otherwise. Failure is context: rules may read it
@@ -35,7 +42,9 @@ from __future__ import annotations
 from typing import Literal
 
 from rra_agent.models.base import FrozenModel
-from rra_agent.models.system import parse_endpoint
+from rra_agent.models.system import ROS2_PREFIX, parse_endpoint
+from rra_agent.ros2.errors import BadName
+from rra_agent.ros2.names import check_type_name, qualify
 
 PRIMITIVE_TYPES = frozenset({"float", "int", "bool", "str", "bytes"})
 MeasurementType = Literal["float", "int", "bool", "str"]
@@ -92,6 +101,8 @@ class Measurement(FrozenModel, frozen=True):
     reachable: str | None = None
     #: ... or a component of the system model: false while it is unavailable (type bool).
     available: str | None = None
+    #: The message type of a ROS 2 ``source`` (``ros2:/topic``), e.g. ``std_msgs/msg/Float32``.
+    ros2_type: str | None = None
     #: Field of the source sample to take when there is no function (e.g. ``level``).
     field: str | None = None
     function: str | None = None
@@ -124,8 +135,10 @@ class Measurement(FrozenModel, frozen=True):
                 raise ValueError(f"a '{derived}' measurement is of type bool")
             if self.field is not None or self.function is not None:
                 raise ValueError(f"a '{derived}' measurement has no field or function")
+        self._check_ros2()
         for s in self.inputs:
-            parse_endpoint(s)
+            if not is_ros2_source(s):
+                parse_endpoint(s)
         if len(self.inputs) > 1 and self.function is None:
             raise ValueError("a multi-input measurement needs a function")
         if self.field is not None and self.function is not None:
@@ -133,10 +146,39 @@ class Measurement(FrozenModel, frozen=True):
         if self.plausible is not None and self.type not in ("float", "int"):
             raise ValueError(f"'plausible' bounds need a numeric measurement, not {self.type}")
 
+    def _check_ros2(self) -> None:
+        if any(is_ros2_source(s) for s in self.sources):
+            raise ValueError("a ROS 2 topic is a measurement's one 'source', not one of 'sources'")
+        if self.source is None or not is_ros2_source(self.source):
+            if self.ros2_type is not None:
+                raise ValueError("'ros2_type' is for a ROS 2 source ('source: ros2:/topic')")
+            return
+        if self.ros2_type is None:
+            raise ValueError("a ROS 2 source needs 'ros2_type' (e.g. std_msgs/msg/Float32)")
+        if self.field is None and self.function is None:
+            raise ValueError("a ROS 2 source needs a 'field' of its message (or a 'function')")
+        try:
+            qualify(self.source[len(ROS2_PREFIX):].strip())
+            check_type_name(self.ros2_type, "msg")
+        except BadName as e:
+            raise ValueError(str(e)) from None
+
+    @property
+    def ros2_topic(self) -> str | None:
+        """The ROS 2 topic of a ROS 2 source (``/battery``), else None."""
+        if self.source is None or not is_ros2_source(self.source):
+            return None
+        return qualify(self.source[len(ROS2_PREFIX):].strip())
+
     @property
     def inputs(self) -> list[str]:
         """The ``component.port`` interfaces it is computed from (none for reachability)."""
         return [self.source] if self.source is not None else list(self.sources)
+
+
+def is_ros2_source(source: str) -> bool:
+    """Whether a measurement source is a ROS 2 topic (``ros2:/battery``)."""
+    return source.startswith(ROS2_PREFIX)
 
 
 class MeasurementsModel(FrozenModel, frozen=True):

@@ -17,6 +17,8 @@ from typing import Literal
 import msgspec
 
 from rra_agent.models.base import FrozenModel
+from rra_agent.ros2.errors import BadName
+from rra_agent.ros2.names import check_namespace, check_node_name, check_type_name
 
 Binding = Literal["deployment", "runtime"]
 ParamType = Literal["float", "int", "bool", "str", "list"]
@@ -123,8 +125,16 @@ class Port(FrozenModel, frozen=True):
     #: A publisher: the largest sample it may send, in bytes (default 1 MiB,
     #: `rra_agent.bus.counters.MAX_PAYLOAD`); larger ones are dropped by the routers.
     max_bytes: int | None = None
+    #: A ROS 2 port: its samples are also (a ROS 2 component's: only) this ROS 2 message
+    #: type, on the ROS 2 topic ``/<topic>`` (docs/ros2.md), e.g. ``sensor_msgs/msg/Imu``.
+    ros2_type: str | None = None
 
     def __post_init__(self) -> None:
+        if self.ros2_type is not None:
+            try:
+                check_type_name(self.ros2_type, "msg")
+            except BadName as e:
+                raise ValueError(str(e)) from None
         if self.max_bytes is not None:
             if self.direction != "publish":
                 raise ValueError("'max_bytes' is a publisher's: its subscribers take what it sends")
@@ -200,6 +210,49 @@ class Scheduling(FrozenModel, frozen=True):
         return self == Scheduling()
 
 
+class Ros2Node(FrozenModel, frozen=True):
+    """A component that is a ROS 2 node (docs/ros2.md): its external commands (and its
+    ``ros2: PACKAGE EXECUTABLE`` implementations) are ROS 2 executables, started with
+    ``--ros-args`` and driven through the node's ROS 2 services.
+
+    ``node``/``namespace``: its ROS 2 name (default: the component's name, in ``/``);
+    ``lifecycle``: a managed node (activated and deactivated with ``change_state``: what
+    the ``standby`` and ``hot-standby`` strategies need); ``rewire``: how a subscriber port
+    is rewired at run time, ``relay`` (a relay in front of it is switched: no restart) or
+    ``restart`` (the executable is restarted with the new ``-r`` remapping);
+    ``timeout``: the deadline of each ROS 2 service call (parameters, lifecycle), seconds."""
+
+    node: str | None = None
+    namespace: str = "/"
+    lifecycle: bool = False
+    rewire: Literal["relay", "restart"] = "relay"
+    timeout: float = 1.0
+
+    def __post_init__(self) -> None:
+        try:
+            if self.node is not None:
+                check_node_name(self.node)
+            check_namespace(self.namespace)
+        except BadName as e:
+            raise ValueError(str(e)) from None
+        if not 0 < self.timeout <= 1.5:
+            raise ValueError(
+                f"timeout must be in (0, 1.5] s (an engine waits 2 s for the reply), got "
+                f"{self.timeout}"
+            )
+
+
+ROS2_PREFIX = "ros2:"
+
+
+def is_ros2_implementation(impl: Implementation, component: Component | None = None) -> bool:
+    """Whether an implementation is a ROS 2 executable: ``ros2: PACKAGE EXECUTABLE``, or an
+    external command of a component with a ``ros2`` section."""
+    if isinstance(impl, str):
+        return impl.startswith(ROS2_PREFIX)
+    return component is not None and component.ros2 is not None
+
+
 class Component(FrozenModel, frozen=True):
     name: str
     implementation: Implementation
@@ -216,6 +269,21 @@ class Component(FrozenModel, frozen=True):
     #: Run in this component container of the host (with the other components naming it)
     #: instead of a process of its own; Python implementations only.
     container: str | None = None
+    #: The component is a ROS 2 node (docs/ros2.md).
+    ros2: Ros2Node | None = None
+
+    @property
+    def implementations_all(self) -> tuple[Implementation, ...]:
+        return (self.implementation, *self.implementations.values())
+
+    def speaks_ros2(self) -> bool:
+        """Whether its process is on the ROS 2 side: a ROS 2 node, or a node with a ROS 2
+        port (rra-agent's own ROS 2 node of it publishes there)."""
+        return (
+            self.ros2 is not None
+            or any(p.ros2_type for p in self.ports)
+            or any(is_ros2_implementation(i, self) for i in self.implementations_all)
+        )
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.ports]
@@ -226,7 +294,7 @@ class Component(FrozenModel, frozen=True):
             raise ValueError("a run-time-bound component must be optional")
         if self.container is not None:
             impls = (self.implementation, *self.implementations.values())
-            if not all(isinstance(i, str) for i in impls):
+            if not all(isinstance(i, str) and not is_ros2_implementation(i) for i in impls):
                 raise ValueError("a component in a container needs Python implementations")
 
     def port(self, name: str) -> Port | None:

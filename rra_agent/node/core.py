@@ -386,7 +386,8 @@ class NodeCore:
                 return m.Ok(result={"accepted": accepted, "fence": list(self.fence or ())})
             case m.Describe():
                 return m.Ok(result=msgspec.to_builtins(self.describe()))
-            case m.SetParams(params=params):
+            case m.SetParams(params=params, decl=decl):
+                self._redeclare(decl)
                 self._set_params(params)
                 return m.Ok()
             case m.Rewire(port=port, keys=keys):
@@ -429,6 +430,25 @@ class NodeCore:
         self.counters.rejected += 1
         self._refusals(f"refused ({code})", message)
         return m.Err(message=message, code=code)
+
+    def _redeclare(self, decl: dict[str, m.ParamDecl]) -> None:
+        """New declarations of known parameters (a reload changed their bounds): the
+        current values must fit them, else nothing changes."""
+        for name, d in decl.items():
+            if name not in self.params:
+                self.counters.rejected += 1
+                raise NodeError(f"node {self.spec.name} has no parameter {name!r}")
+            value = self.params[name]
+            if value is not None:
+                try:
+                    coerce_parameter(d.type, value, d.min, d.max)
+                except ValueError as e:
+                    self.counters.rejected += 1
+                    raise NodeError(
+                        f"parameter {name!r} of node {self.spec.name}: its value {value!r} "
+                        f"does not fit the new declaration: {e}"
+                    ) from None
+        self.decl.update(decl)
 
     def _set_params(self, params: dict[str, Any]) -> None:
         """Check every value against its declaration first: all are set, or none."""

@@ -85,6 +85,10 @@ def _run_node(spec: NodeSpec) -> int:
         from rra_agent.node.container import run_container
 
         return run_container(spec, BusConfig.from_env())
+    if spec.ros2 is not None and spec.ros2.executable:
+        from rra_agent.node.ros2 import run_ros2_executable
+
+        return run_ros2_executable(spec, BusConfig.from_env())
     try:
         if not isinstance(spec.implementation, str):
             raise ValueError("an external-command implementation is run directly, not here")

@@ -207,15 +207,8 @@ class NodeRuntime:
         token = None
         core: NodeCore | None = None
         try:
-            transport = ZenohTransport(session)
-            core = NodeCore(
-                self.spec,
-                self.node_cls,
-                transport,
-                logger=lambda s: print(s, file=sys.stderr, flush=True),
-                pid=os.getpid(),
-                max_data=self.bus.max_data_bytes,
-            )
+            transport = self.make_transport(session)
+            core = self.make_core(transport)
             self.core = core
             core.on_reflex = reflex_reporter(session, self.keys.reflex(self.spec.name))
             for name, port in core.ports.items():
@@ -242,8 +235,37 @@ class NodeRuntime:
                 core.stop()
             if token is not None:
                 token.undeclare()
+            self.release()
             session.close()
             signal.set_wakeup_fd(-1)
+
+    # ---- what a runtime of another kind (`rra_agent.node.ros2`) changes ------------------
+    def make_transport(self, session: zenoh.Session) -> Any:
+        """The node's transport: its ports on Zenoh, and on ROS 2 too where they have a
+        ROS 2 type (`rra_agent.node.ros2mirror.Ros2Mirror`)."""
+        transport = ZenohTransport(session)
+        if self.spec.ros2 is not None:
+            from rra_agent.node.ros2mirror import Ros2Mirror
+
+            self._ros2 = Ros2Mirror(transport, self.spec)
+            return self._ros2
+        return transport
+
+    def make_core(self, transport: Any) -> NodeCore:
+        return NodeCore(
+            self.spec,
+            self.node_cls,
+            transport,
+            logger=lambda s: print(s, file=sys.stderr, flush=True),
+            pid=os.getpid(),
+            max_data=self.bus.max_data_bytes,
+        )
+
+    def release(self) -> None:
+        """Before the session closes: undeclare what is not the transport's (ROS 2)."""
+        ros2 = getattr(self, "_ros2", None)
+        if ros2 is not None:
+            ros2.close()
 
     def _on_query(self, core: NodeCore):
         return control_callback(core, self.wake)

@@ -24,6 +24,7 @@ from rra_agent.errors import Location, ModelError
 from rra_agent.models.measurements import PRIMITIVE_TYPES, DataType, Measurement
 from rra_agent.models.resolution import ConnectionRef, ResolutionModel, Transformation
 from rra_agent.models.system import (
+    ROS2_PREFIX,
     Command,
     Component,
     Connection,
@@ -75,6 +76,7 @@ class _Checker:
             if self.implementations:
                 self.check_implementations()
             self.check_measurements()
+        self.check_ros2()
         return _in_file_order(self.errors)
 
     # ---- helpers ------------------------------------------------------------------------
@@ -169,6 +171,13 @@ class _Checker:
         if hosts and comp.host is not None and comp.host not in hosts:
             self.error("system", (*path, "host"), unknown_name("host", comp.host, hosts))
         for j, port in enumerate(comp.ports):
+            if port.ros2_type is not None and port.type == port.ros2_type:
+                continue  # a ROS 2 message type (check_ros2 looks it up)
+            if port.ros2_type is not None and "/" in port.type:
+                self.error("system", (*path, "ports", j, "type"),
+                           f"type {port.type} is not the port's ros2_type {port.ros2_type}: a "
+                           "ROS 2 port's type is its ROS 2 type, or a data type")
+                continue
             if not self.type_known(port.type):
                 self.error("system", (*path, "ports", j, "type"), self.unknown_type(port.type))
         for name, param in comp.parameters.items():
@@ -193,11 +202,17 @@ class _Checker:
         `rra_agent.node.Node` subclass; an external command exists and is executable."""
         for i, comp in enumerate(self.pkg.system.components):
             path: tuple[PathItem, ...] = ("components", i)
-            self.check_implementation((*path, "implementation"), comp.implementation)
+            # a ROS 2 node's command runs in the package folder
+            root = self.pkg.root if comp.ros2 is not None else None
+            self.check_implementation((*path, "implementation"), comp.implementation, root)
             for name, impl in comp.implementations.items():
-                self.check_implementation((*path, "implementations", name), impl)
+                self.check_implementation((*path, "implementations", name), impl, root)
 
-    def check_implementation(self, path: tuple[PathItem, ...], impl: Implementation) -> None:
+    def check_implementation(
+        self, path: tuple[PathItem, ...], impl: Implementation, root: Path | None = None
+    ) -> None:
+        if isinstance(impl, str) and impl.startswith(ROS2_PREFIX):
+            return  # a ROS 2 executable: parsed by check_ros2 (`ros2 run` needs ROS 2 here)
         if isinstance(impl, str):
             if impl not in self._classes:
                 self._classes[impl] = _node_class_problem(impl, self.pkg.root)
@@ -208,7 +223,7 @@ class _Checker:
         if not impl.command:
             self.error("system", (*path, "command"), "an external command needs a program")
             return
-        problem = _command_problem(impl)
+        problem = _command_problem(impl, root)
         if problem:
             self.error("system", (*path, "command", 0), problem)
 
@@ -381,6 +396,17 @@ class _Checker:
                 f"duplicate state transfer into '{name}'",
             )
 
+    # ---- ROS 2 ---------------------------------------------------------------------------
+    def check_ros2(self) -> None:
+        """Types, fields, topics and links of the package's ROS 2 parts
+        (`rra_agent.package.ros2`), each at its place."""
+        from rra_agent.package import ros2
+
+        if self.pkg.manifest.ros2 is None and not ros2.uses_ros2(self.pkg):
+            return
+        for p in ros2.problems(self.pkg):
+            self.error(p.model, p.path, p.message, p.key)
+
     # ---- measurements.yaml --------------------------------------------------------------
     def check_measurements(self) -> None:
         for i, dt in enumerate(self.pkg.measurements.data_types):
@@ -408,6 +434,10 @@ class _Checker:
 
     def check_measurement(self, i: int, m: Measurement) -> None:
         path: tuple[PathItem, ...] = ("measurements", i)
+        if m.ros2_topic is not None:  # a ROS 2 topic: its type and field in check_ros2
+            if m.function is not None:
+                self.check_function(path, m, [])
+            return
         if m.reachable is not None:
             hosts = {h.name for h in self.pkg.system.hosts}
             if m.reachable not in hosts:
@@ -497,6 +527,8 @@ def measurement_warnings(pkg: SystemPackage) -> list[ModelWarning]:
     out = []
     for i, m in enumerate(pkg.measurements.measurements):
         for j, src in enumerate(m.inputs):
+            if m.ros2_topic is not None:
+                continue  # a ROS 2 topic: every sample is decoded as its ROS 2 type
             ep = parse_endpoint(src)
             comp = pkg.system.component(ep.component)
             port = comp.port(ep.port) if comp is not None else None
@@ -621,18 +653,18 @@ def _is_node_class(obj: object) -> bool:
     )
 
 
-def _command_problem(impl: Command) -> str | None:
+def _command_problem(impl: Command, root: Path | None = None) -> str | None:
     """Why an external command's program cannot be run (None when it can): a name is looked
     up on PATH (the implementation's own ``env`` PATH if it sets one); a path is taken
     relative to its ``cwd`` (itself relative to the current folder, as the host agent runs
-    it) and must be an executable file."""
+    it; to ``root``, the package folder, for a ROS 2 node's) and must be an executable file."""
     program = impl.command[0]
     if "/" not in program:
         search = impl.env.get("PATH", os.environ.get("PATH", os.defpath))
         if shutil.which(program, path=search) is None:
             return f"program '{program}' of the external command is not on PATH"
         return None
-    file = Path(impl.cwd or ".") / program
+    file = Path(root or ".") / (impl.cwd or ".") / program
     if not file.exists():
         return f"program '{program}' of the external command does not exist ({file})"
     if not file.is_file() or not os.access(file, os.X_OK):

@@ -205,10 +205,48 @@ def _dup_message(node: MappingNode, key: Node) -> str:
 
 
 # ---- loading ------------------------------------------------------------------------------------
+#: libyaml's composer when PyYAML has it: nine times faster on the shipped packages (a replay
+#: loads the run's models: tools/bench_replay.py), the same nodes, lines and columns.
+_FAST: type[yaml.SafeLoader] | None = getattr(yaml, "CSafeLoader", None)
+
+
+def _compose(text: str) -> yaml.Node | None:
+    """The YAML node tree of ``text``; on a syntax error, the pure-Python composer's error
+    (its messages are the ones documented and tested)."""
+    if _FAST is not None:
+        try:
+            root = yaml.compose(text, Loader=_FAST)
+        except yaml.YAMLError:
+            pass
+        else:
+            _plain_style(root)
+            return root
+    return yaml.compose(text, Loader=yaml.SafeLoader)
+
+
+def _plain_style(node: yaml.Node | None) -> None:
+    """libyaml names a plain scalar's style ``""``, the pure-Python composer ``None``."""
+    stack = [node] if node is not None else []
+    seen: set[int] = set()  # an alias is the same node: walked once (recursive, or nested)
+    while stack:
+        n = stack.pop()
+        if id(n) in seen:
+            continue
+        seen.add(id(n))
+        if isinstance(n, ScalarNode):
+            if n.style == "":
+                n.style = None
+        elif isinstance(n, MappingNode):
+            for k, v in n.value:
+                stack += (k, v)
+        elif isinstance(n.value, list):
+            stack += n.value
+
+
 def compose_text(text: str, file: str) -> YamlDoc:
     """Compose YAML text into a `YamlDoc`; a syntax error becomes a located ModelError."""
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        root = _compose(text)
     except yaml.MarkedYAMLError as e:
         raise _syntax_error(e, file, text) from None
     return YamlDoc(file, root, text)

@@ -32,6 +32,7 @@ from rra_agent.ros2.errors import (
     BadToken,
     DecodeError,
     FieldError,
+    NoServer,
     Ros2Error,
     ServiceFailed,
     ServiceTimeout,
@@ -405,9 +406,9 @@ class Client(_Entity):
                 raise ServiceFailed(f"service {name}: bad response: {e}") from None
         if time.monotonic() - start < timeout * 0.95:  # the call ended before its deadline
             if not self.available():
-                raise ServiceFailed(f"no server for service {name} ({srv}) in domain "
-                                    f"{self.key.domain}")
-            raise ServiceFailed(f"service {name} ({srv}) ended the call without a reply")
+                raise NoServer(f"no server for service {name} ({srv}) in domain "
+                               f"{self.key.domain}")
+            raise NoServer(f"service {name} ({srv}) ended the call without a reply")
         raise ServiceTimeout(f"service {name} ({srv}) did not answer within {timeout:g} s")
 
     def _undeclare(self) -> None:

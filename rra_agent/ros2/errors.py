@@ -39,3 +39,8 @@ class ServiceTimeout(Ros2Error):
 
 class ServiceFailed(Ros2Error):
     """A service call that got an error reply or a reply that could not be decoded."""
+
+
+class NoServer(ServiceFailed):
+    """A service call that reached no server: it ended at once, without any reply (a server
+    that has just appeared may not be reached for a moment yet)."""

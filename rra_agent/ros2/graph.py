@@ -159,11 +159,17 @@ def graph_lines(graph: dict[str, Any], width: int = 100) -> list[str]:
            + (f", {refused} tokens refused" if refused else "")]
     tags = (("publishers", "pub"), ("subscriptions", "sub"), ("services", "srv"),
             ("clients", "cli"))
+    # Nodes of one name are shown as one, with all their endpoints (some implementations,
+    # zenoh-ros2-sdk's, declare a node per endpoint; --json lists them apart).
+    by_name: dict[str, list[dict[str, Any]]] = {}
     for node in nodes:
-        out.append(_fit(f"  {node['name']}", width))
+        by_name.setdefault(node["name"], []).append(node)
+    for name, same in by_name.items():
+        many = f"  ({len(same)} nodes of this name)" if len(same) > 1 else ""
+        out.append(_fit(f"  {name}{many}", width))
         for field_name, tag in tags:
-            for e in node.get(field_name, []):
-                out.append(_fit(f"    {tag} {e['name']} [{e['type']}]", width))
+            seen = sorted({(e["name"], e["type"]) for n in same for e in n.get(field_name, [])})
+            out += [_fit(f"    {tag} {e} [{t}]", width) for e, t in seen]
     return out
 
 

@@ -13,6 +13,7 @@ expressions; Humble has none (``TypeHashNotSupported``).
 
 from __future__ import annotations
 
+import difflib
 import types as pytypes
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -200,8 +201,8 @@ class TypeRegistry:
         if ros_type not in self.store.fielddefs:
             check_type_name(ros_type)
             raise UnknownType(
-                f"unknown ROS 2 type {ros_type!r} in {self.distro} (register its .msg/.srv "
-                "file in the package's msg folder)"
+                f"unknown ROS 2 type {ros_type!r} in {self.distro} (a type of your own: put "
+                "<pkg>/msg/<Type>.msg in the folder of rra.yaml's ros2: {interfaces})"
             )
         return ros_type
 
@@ -385,10 +386,7 @@ class TypeRegistry:
             if node == Nodetype.NAME:
                 fields = dict(self.store.fielddefs[rest][1])
                 if part not in fields:
-                    raise FieldError(
-                        f"{ros_type} has no field {_join(done, part)!r} ({rest} has: "
-                        f"{', '.join(fields) or 'no fields'})"
-                    )
+                    raise FieldError(_no_field(ros_type, _join(done, part), rest, list(fields)))
                 desc = fields[part]
             elif node in (Nodetype.ARRAY, Nodetype.SEQUENCE) and part.isdigit():
                 if node == Nodetype.ARRAY and int(part) >= rest[1]:
@@ -402,6 +400,13 @@ class TypeRegistry:
         return _describe(desc)
 
 
+
+
+def _no_field(ros_type: str, path: str, owner: str, fields: list[str]) -> str:
+    """"X has no field 'p'": the closest field first (did you mean), then all of them."""
+    close = difflib.get_close_matches(path.rsplit(".", 1)[-1], fields, n=1)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return f"{ros_type} has no field {path!r} ({hint}{owner} has: {', '.join(fields) or 'none'})"
 
 
 def get_field(message: Mapping[str, Any], path: str) -> Any:

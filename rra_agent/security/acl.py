@@ -38,6 +38,15 @@ components between hosts):
 - declare its liveliness token ``alive/<host>/<name>``;
 - put on ``reflex/<name>``: a reflex the engines installed in it fired.
 
+A system with a ROS 2 side (``ros2:`` in ``rra.yaml``; docs/ros2.md) also allows, in its
+ROS domain D, everything on ``D/**`` (topics and services) and ``@ros2_lv/D/**`` (the graph's
+liveliness tokens) to the engines and to each node whose component speaks ROS 2 (a ROS 2
+executable's node, which calls its services and relays its inputs; a node with ROS 2
+ports), and reading them to the operator (``rra status`` lists the graph). ROS 2 nodes
+themselves connect with their own Zenoh configuration; the routers admit them only with a
+certificate of the system (``ZENOH_SESSION_CONFIG_URI``), and then as the subject of that
+certificate.
+
 A component without a ``host`` runs where the Run-time Resolution Engine's leader runs,
 which may be any host, so every host's router admits it. Everything else is denied
 (``default_permission: deny``).
@@ -45,7 +54,7 @@ which may be any host, so every host's router admits it. Everything else is deni
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -203,9 +212,22 @@ def _node_rules(n: NodeKeys, keys: Keys) -> list[dict[str, Any]]:
     ]
 
 
-def _operator_rules(keys: Keys) -> list[dict[str, Any]]:
+def ros2_keys(dep: Deployment) -> list[str]:
+    """The keys of the system's ROS domain (none without ``ros2:``): its topics and services,
+    and the liveliness tokens of its graph."""
+    settings = dep.package.manifest.ros2
+    if settings is None:
+        return []
+    return [f"{settings.domain}/**", f"@ros2_lv/{settings.domain}/**"]
+
+
+def _ros2_rules(rule_id: str, ros2: list[str]) -> list[dict[str, Any]]:
+    return [_rule(rule_id, ALL_MESSAGES, ["ingress", "egress"], ros2)]
+
+
+def _operator_rules(keys: Keys, ros2: Sequence[str] = ()) -> list[dict[str, Any]]:
     control = [f"{keys.prefix}/engine/**", keys.inject_all]
-    reads = [f"{keys.prefix}/{k}" for k in _OPERATOR_READS]
+    reads = [f"{keys.prefix}/{k}" for k in _OPERATOR_READS] + list(ros2)
     return [
         _rule("operator/control", ["query"], "ingress", control),
         _rule("operator/control-replies", ["reply"], "egress", control),
@@ -225,13 +247,14 @@ def access_control(dep: Deployment, host: str) -> dict[str, Any]:
         {"id": "routers", "cert_common_names": [common_name("agent", h) for h in hosts]},
         [_rule("routers/all", ALL_MESSAGES, ["ingress", "egress"], ["**"])],
     )
+    ros2 = ros2_keys(dep)
     acl.grant(
         {"id": "engines", "cert_common_names": [common_name("engine", host)]},
-        [_rule("engines/all", ALL_MESSAGES, ["ingress", "egress"], [keys.everything])],
+        [_rule("engines/all", ALL_MESSAGES, ["ingress", "egress"], [keys.everything, *ros2])],
     )
     acl.grant(
         {"id": "operator", "cert_common_names": [OPERATOR]},
-        _operator_rules(keys),
+        _operator_rules(keys, ros2),
     )
     for c in model.components:
         if c.host not in (None, host):
@@ -243,6 +266,7 @@ def access_control(dep: Deployment, host: str) -> dict[str, Any]:
                 "cert_common_names": [common_name("node", host)],
                 "zids": [node_zid(model.system, c.name)],
             },
-            _node_rules(n, keys),
+            _node_rules(n, keys) + (_ros2_rules(f"node:{c.name}/ros2", ros2)
+                                    if c.speaks_ros2() else []),
         )
     return acl.config()

@@ -101,6 +101,7 @@ import math
 import os
 import socket
 import sys
+import textwrap
 import threading
 import time
 import uuid
@@ -112,8 +113,14 @@ from urllib.parse import urlsplit
 
 import msgspec
 
+from rra_agent.bus.why import change_lines
+
 if TYPE_CHECKING:
-    from rra_agent.bus.messages import AdaptationEvent, NodeState
+    from rra_agent.bus.messages import AdaptationEvent, NodeState, Why
+
+#: Characters of a ``/rules`` row: what the events view's body column shows of a row at
+#: 1600 px in the designed views (rendered with tools/render_rrd.py); longer lines go on.
+RULES_WIDTH = 72
 
 ENV_VAR = "RRA_RERUN"
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -278,6 +285,18 @@ class _Rows:
         self.values: list[Any] = []
 
 
+
+def rule_rows(why: Sequence[Why], width: int = RULES_WIDTH) -> list[str]:
+    """The rows of ``/rules`` for one change of the selection: each line of
+    `rra_agent.bus.why.change_lines` cut at words into rows of at most ``width`` characters
+    (a row goes on, indented, in the next), so that the events view cuts none of the cause."""
+    rows: list[str] = []
+    for line in change_lines(why):
+        text = line if line.startswith(" ") else f"selection {line}"
+        indent = " " * (len(text) - len(text.lstrip()) + 4)
+        rows += textwrap.wrap(text, width, subsequent_indent=indent, break_on_hyphens=False)
+    return rows
+
 class Logger:
     """One process' handle on the shared recording. Thread-safe; every method is a no-op after
     `close` and never raises."""
@@ -434,12 +453,15 @@ class Logger:
         universe: Iterable[str] = (),
         fired: Sequence[str] = (),
         changed: bool = False,
+        why: Sequence[Why] = (),
     ) -> None:
         """The run-time selection: ``/selection/<f>`` is 1 for each selected feature and 0 for
         every other feature of ``universe`` (or seen selected before); ``/choice/<group>`` the
         selected feature of each choice of ``RerunConfig.choices``; ``/cv/<a>`` the CV values
-        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, the ``fired``
-        rules as a line of ``/rules`` (what changed: ``+Added -Removed``)."""
+        and the active NFR limits of ``RerunConfig.limits``; when ``changed``, rows of
+        ``/rules``: what changed (``+Added -Removed``) and by which rules, with what they read,
+        then each rule they overruled, a row per line so that a view cuts none (``why``;
+        else one row naming the ``fired`` rules)."""
         selected = set(features)
         self._features.update(universe)
         self._features.update(selected)
@@ -463,8 +485,12 @@ class Logger:
             else:  # what changed: +added -removed
                 diff = [f"+{f}" for f in sorted(selected - last)]
                 text = "selection " + " ".join(diff + [f"-{f}" for f in sorted(last - selected)])
-            text += f" by {'; '.join(fired)}" if fired else ""
-            self.rec.log("/rules", rr.TextLog(text, level=level))
+            if why:  # a row per line: a view shows one line of each row, so none is hidden
+                for row in rule_rows(why):
+                    self.rec.log("/rules", rr.TextLog(row, level=level))
+            else:
+                text += f" by {'; '.join(fired)}" if fired else ""
+                self.rec.log("/rules", rr.TextLog(text, level=level))
         self._last_selection = selected
 
     @_safe
@@ -475,7 +501,11 @@ class Logger:
         rr = self.rr
         head = f"{ev.kind}: {ev.message}" + (f" [{ev.outcome}]" if ev.outcome else "")
         phases = ", ".join(f"{p} {s * 1000.0:.1f} ms" for p, s in ev.durations.items())
-        lines = [head + (f" ({phases})" if phases else ""), *(f"  {step}" for step in ev.plan)]
+        lines = [head + (f" ({phases})" if phases else "")]
+        lines += [f"  {line}" for line in change_lines(ev.why)]  # the whole cause, untruncated
+        if ev.cause and not ev.why:
+            lines += [f"  cause {c.rule}: {c.action}" for c in ev.cause]
+        lines += [f"  {step}" for step in ev.plan]
         level = _LEVELS.get(ev.level, "INFO")
         if ev.kind == "adaptation" and ev.message.startswith("applied selection"):
             applied = ev.message.partition("]")[0]

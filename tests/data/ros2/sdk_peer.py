@@ -6,12 +6,14 @@ implementation of rmw_zenoh) in a process of its own.
 Each line it prints on stdout is one JSON object; ``{"ready": ...}`` once its endpoints
 are declared. It runs until its stdin closes (the test closes it), then exits cleanly.
 Roles:
-  pub_battery [P]  publish sensor_msgs/BatteryState on /battery every P s (0.02; i/100 %)
+  pub_battery [P [T]]  publish sensor_msgs/BatteryState on topic T (/battery) every P s
+                   (0.02; i/100 %)
   pub_string       publish std_msgs/String on /battery (a wrong type on that topic)
   sub_battery [T]  print every BatteryState received on topic T (/battery)
   serve            node /sdk_node: set_parameters, get_parameters and change_state servers
   call NODE        call NODE's set_parameters, get_parameters and change_state, print replies
   topic_info NAME  print what its graph knows of topic NAME and of NODE services
+  sub TOPIC TYPE   print the scalar fields of every message received on TOPIC
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ def main() -> None:
         if role in ("pub_battery", "pub_string"):
             string = role == "pub_string"
             pub = ROS2Publisher(
-                "/battery", "std_msgs/msg/String" if string else "sensor_msgs/msg/BatteryState",
+                args[1] if len(args) > 1 else "/battery",
+                "std_msgs/msg/String" if string else "sensor_msgs/msg/BatteryState",
                 node_name="battery_node", **kw,
             )
             things.append(pub)
@@ -71,6 +74,16 @@ def main() -> None:
             sub = ROS2Subscriber(args[0] if args else "/battery",
                                  "sensor_msgs/msg/BatteryState", got,
                                  node_name="battery_listener", **kw)
+            things.append(sub)
+            out(ready=sub.keyexpr)
+        elif role == "sub":
+            def echo(msg: object) -> None:
+                fields = getattr(msg, "__dataclass_fields__", {})
+                values = {k: getattr(msg, k) for k in fields}
+                out(topic=args[0], msg={k: v for k, v in values.items()
+                                        if isinstance(v, (bool, int, float, str))})
+
+            sub = ROS2Subscriber(args[0], args[1], echo, node_name="sdk_echo", **kw)
             things.append(sub)
             out(ready=sub.keyexpr)
         elif role == "serve":
@@ -197,7 +210,8 @@ def topic_info(args: list[str], kw: dict) -> None:
 
     deadline = time.monotonic() + 10
     info = None
-    while info is None and time.monotonic() < deadline:  # its session may still be joining
+    # its session may still be joining, its graph still filling: until it has an endpoint
+    while time.monotonic() < deadline and (info is None or not info.publishers):
         info = get_topic_info(args[0], verbose=True, timeout=0.5, **kw)
     pubs = [p.node_name for p in info.publishers] if info else []
     subs = [s.node_name for s in info.subscribers] if info else []

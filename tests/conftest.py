@@ -260,8 +260,9 @@ def tcp_peers(pid: int, netns: str | None = None) -> set[int]:
 
 class System:
     def __init__(
-        self, procs, bus, run_dir: Path, package: Path, *extra: str, hostile: bool = False
-    ) -> None:
+        self, procs, bus, run_dir: Path, package: Path, *extra: str, hostile: bool = False,
+        name: str = "relay_system", ready: str = "sink",
+    ) -> None:  # fmt: skip
         self.procs = procs
         self.run_dir = run_dir
         self.proc = procs.python(
@@ -273,12 +274,12 @@ class System:
         port = int(bus.connect[0].rsplit(":", 1)[1])
         wait_until(lambda: self.proc.poll() is not None or listening(port), 60,
                    "rra up listening", interval=0.02)  # fmt: skip
-        self.client = BusClient(bus, "relay_system")
+        self.client = BusClient(bus, name)
         if hostile:
             procs.spawn([sys.executable, str(ROOT / "tools" / "hostile.py"), bus.connect[0],
-                         "relay_system"], name="hostile")  # fmt: skip
+                         name], name="hostile")  # fmt: skip
         self.status = self.wait(lambda s: s["engine"] and not s["engine"]["failed"]
-                                and "sink" in s["engine"]["running"], "deployment")  # fmt: skip
+                                and ready in s["engine"]["running"], "deployment")  # fmt: skip
 
     def gather(self) -> dict:
         st = gather(self.client, timeout=1.0)
@@ -333,8 +334,8 @@ def system(procs, bus, tmp_path, request):
     started: list[System] = []
     hostile = request.config.getoption("--hostile")
 
-    def start(package: Path = RELAY, *extra: str) -> System:
-        s = System(procs, bus, tmp_path / "run", package, *extra, hostile=hostile)
+    def start(package: Path = RELAY, *extra: str, **kw: str) -> System:
+        s = System(procs, bus, tmp_path / "run", package, *extra, hostile=hostile, **kw)
         started.append(s)
         return s
 

@@ -57,20 +57,25 @@ from rra_agent.scenario.runner import run_case
 
 FAULT_AT = 3.0
 DURATION = 6.0
+#: name -> (replacement strategy, emulated swap delay s, reflexes on).
 STRATEGIES = {
-    "standby": ("standby", 0.0),
-    "hot-standby": ("hot-standby", 0.0),
-    "stop-then-start": ("stop-then-start", 0.0),
-    "delayed 0.5 s": ("standby", 0.5),
+    "standby": ("standby", 0.0, True),
+    "hot-standby": ("hot-standby", 0.0, True),
+    "standby, engines": ("standby", 0.0, False),
+    "hot-standby, engines": ("hot-standby", 0.0, False),
+    "stop-then-start": ("stop-then-start", 0.0, True),
+    "delayed 0.5 s": ("standby", 0.5, False),
 }
 #: (median ms, p99 ms) goals: quiet machine, and under --load.
 GOALS = {
     ("standby", False): (5.0, 8.0),
     ("standby", True): (8.0, 15.0),
-    ("hot-standby", False): (5.0, 8.0),
-    ("hot-standby", True): (8.0, 15.0),
-    ("stop-then-start", False): (50.0, None),
-    ("stop-then-start", True): (50.0, None),
+    ("hot-standby", False): (2.0, 4.0),
+    ("hot-standby", True): (4.0, 8.0),
+    ("hot-standby, engines", False): (5.0, 8.0),
+    ("hot-standby, engines", True): (8.0, 15.0),
+    ("stop-then-start", False): (20.0, 30.0),
+    ("stop-then-start", True): (20.0, 30.0),
 }
 _ENGINES = [
     ("detect (fault -> measurement)", "monitor:measurement"),
@@ -83,14 +88,20 @@ _SIM = [
     ("first physics step with it", "sim:commanded_by"),
 ]
 #: The phases of each strategy: (label, the trace mark that ends it), in order.
+_REFLEX = [
+    ("reflex fired in the consumer", "node:reflex"),
+    *_SIM,
+]
 PHASES = {
-    "standby": [
+    "standby": _REFLEX,
+    "hot-standby": _REFLEX,
+    "standby, engines": [
         *_ENGINES,
         ("connect (rewire, export state)", "engine:replied"),
         ("activate (-> first command sent)", "node:activated_publish"),
         *_SIM,
     ],
-    "hot-standby": [
+    "hot-standby, engines": [
         *_ENGINES,
         ("select (consumer rewired, held command delivered)", "sim:command_from"),
         ("first physics step with it", "sim:commanded_by"),
@@ -241,7 +252,7 @@ def keep(run_dir: Path, into: Path | None, why: str) -> None:
     print(f"    kept {dest} ({why})", flush=True)
 
 
-def one_run(case, delay: float, run_dir: Path):
+def one_run(case, delay: float, run_dir: Path, name: str):
     """One run: its report, its recording and its phases (seconds)."""
     run_dir.mkdir(parents=True)
     trace_file = run_dir / "trace.jsonl"
@@ -260,9 +271,17 @@ def one_run(case, delay: float, run_dir: Path):
         report.first_proploss_command = marks.applied
     if marks.crashed:
         report.airborne = False
-    strategy = case.replacement.components.get("proploss_controller", "")
-    ph = phases(trace_file, strategy) if trace_file.exists() else {}
-    return report, result.recording, ph, marks.received
+    ph = phases(trace_file, name) if trace_file.exists() else {}
+    return report, result.recording, ph, marks.received, confirmations(result.recording)
+
+
+def confirmations(rec) -> list[float]:
+    """Seconds from each reflex's fire to the engines' confirmation (its events)."""
+    return [
+        float(e.durations.get("confirm", 0.0))
+        for e in rec.events
+        if getattr(e, "kind", "") == "reflex" and e.outcome == "ok"
+    ]
 
 
 def altitude_trace(rec, report) -> tuple[list[float], list[float]]:
@@ -332,17 +351,17 @@ def main() -> int:
     if args.load:
         hog = subprocess.Popen([sys.executable, str(Path(__file__).parent / "cpuhog.py")])
         print(f"load: tools/cpuhog.py, {os.cpu_count()} busy loops")
-    rows, traces, breakdown = [], {}, {}
     chosen = args.scheduling or ["fifo", "none"]
+    names = args.only or list(STRATEGIES)
+    accs = {(n, v): Acc(n, v) for n in names for v in chosen}
     try:
         with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
             variants = {v: scheduled(SCENARIO.parent, Path(tmp) / v, VARIANTS[v]) for v in chosen}
-            for name in args.only or list(STRATEGIES):
-                for variant in chosen:
-                    row, tr, ph = run_strategy(name, variants[variant], variant, args, Path(tmp))
-                    rows.append(row)
-                    traces.setdefault(name, tr)
-                    breakdown[f"{name}, {variant}"] = ph
+            # Interleaved (A, B, A, B, ...): what the machine's other load does meanwhile
+            # falls on every strategy alike.
+            for i in range(args.runs):
+                for (_, variant), acc in accs.items():
+                    acc.run(i, variants[variant], args, Path(tmp))
     finally:
         if hog is not None:
             hog.kill()
@@ -351,7 +370,7 @@ def main() -> int:
     load = "under a busy loop on every core" if args.load else "quiet machine"
     print(
         f"fault -> first Proploss command received by the simulator / applied at its next "
-        f"2 ms physics step ({load})"
+        f"2 ms physics step ({load}; runs interleaved)"
     )
     print(
         "scheduling of the critical path: "
@@ -360,60 +379,90 @@ def main() -> int:
     print_table(
         ["strategy", "scheduling", "runs", "received ms (median / p99)",
          "applied ms (median / p99)", "goal ms (median / p99)",
-         "alt. lost median m", "alt. lost p99 m", "airborne"],
-        rows,
+         "alt. lost median m", "alt. lost p99 m", "airborne", "confirmed ms (median / p99)"],
+        [acc.row(args) for acc in accs.values()],
         digits=3,
     )  # fmt: skip
-    print_phases(breakdown)
+    print_phases({f"{n}, {v}": acc.per_phase for (n, v), acc in accs.items()})
+    traces = {n: acc.trace_xy for (n, _), acc in accs.items() if acc.trace_xy is not None}
     if traces and plot(traces, Path(args.plot)):
         print(f"plot: {Path(args.plot).resolve()}")
     return 0
 
 
-def run_strategy(name: str, package: Path | None, variant: str, args, tmp: Path):
-    strategy, delay = STRATEGIES[name]
-    case = make_case(strategy, package)
-    latencies, received, losses, survived, per_phase = [], [], [], 0, {}
-    trace_xy = None
-    kept = Path(args.keep) if args.keep else None
-    for i in range(args.runs):
-        run_dir = tmp / f"{name}-{variant}-{i}"
+class Acc:
+    """One strategy under one scheduling variant: its runs so far."""
+
+    def __init__(self, name: str, variant: str) -> None:
+        self.name, self.variant = name, variant
+        self.latencies: list[float] = []
+        self.received: list[float] = []
+        self.losses: list[float] = []
+        self.confirmed: list[float] = []
+        self.survived = 0
+        self.per_phase: dict[str, list[float]] = {}
+        self.trace_xy: tuple[list[float], list[float]] | None = None
+
+    def run(self, i: int, package: Path, args, tmp: Path) -> None:
+        name, variant = self.name, self.variant
+        strategy, delay, reflexes = STRATEGIES[name]
+        case = make_case(strategy, reflex_variant(package, reflexes))
+        kept = Path(args.keep) if args.keep else None
+        run_dir = tmp / f"{name.replace(' ', '_').replace(',', '')}-{variant}-{i}"
         try:
-            report, rec, ph, got = one_run(case, delay, run_dir)
+            report, rec, ph, got, conf = one_run(case, delay, run_dir, name)
         except RunFailed as e:
-            print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: FAILED: {e}", flush=True)
+            print(f"  {name:<20} {variant:<5} run {i + 1}/{args.runs}: FAILED: {e}", flush=True)
             keep(run_dir, kept, f"failed: {e}")
-            continue
+            return
         if not report.airborne or report.first_proploss_command is None:
             keep(run_dir, kept, "crashed" if not report.airborne else "no Proploss command")
         if report.first_proploss_command is not None:
-            latencies.append(report.first_proploss_command)
+            self.latencies.append(report.first_proploss_command)
         if got is not None:
-            received.append(got)
+            self.received.append(got)
         if report.altitude_lost is not None:
-            losses.append(report.altitude_lost)
-        survived += report.airborne
+            self.losses.append(report.altitude_lost)
+        self.confirmed += conf
+        self.survived += report.airborne
         for k, v in ph.items():
-            per_phase.setdefault(k, []).append(v)
-        if i == 0:
-            trace_xy = altitude_trace(rec, report)
-        print(f"  {name:<16} {variant:<5} run {i + 1}/{args.runs}: received "
+            self.per_phase.setdefault(k, []).append(v)
+        if self.trace_xy is None:
+            self.trace_xy = altitude_trace(rec, report)
+        print(f"  {name:<20} {variant:<5} run {i + 1}/{args.runs}: received "
               f"{(got or float('nan')) * 1e3:6.1f} ms, applied "
               f"{(report.first_proploss_command or float('nan')) * 1e3:6.1f} ms, "
               f"altitude lost {report.altitude_lost or float('nan'):.3f} m, "
-              f"{'airborne' if report.airborne else 'CRASHED'}", flush=True)  # fmt: skip
-    row = [
-        name,
-        variant,
-        len(latencies),
-        _ms(received),
-        _ms(latencies),
-        _goal(strategy if delay == 0 else "", args.load),
-        median(losses) if losses else float("nan"),
-        p99(losses) if losses else float("nan"),
-        f"{survived}/{args.runs}",
-    ]
-    return row, trace_xy, per_phase
+              f"{'airborne' if report.airborne else 'CRASHED'}"
+              + (f", confirmed {conf[0] * 1e3:.1f} ms" if conf else ""), flush=True)  # fmt: skip
+
+    def row(self, args) -> list:
+        delay = STRATEGIES[self.name][1]
+        return [
+            self.name,
+            self.variant,
+            len(self.latencies),
+            _ms(self.received),
+            _ms(self.latencies),
+            _goal(self.name if delay == 0 else "", args.load),
+            median(self.losses) if self.losses else float("nan"),
+            p99(self.losses) if self.losses else float("nan"),
+            f"{self.survived}/{args.runs}",
+            _ms(self.confirmed),
+        ]
+
+
+def reflex_variant(package: Path, reflexes: bool) -> Path:
+    """``package`` itself (reflexes on, as shipped) or a sibling copy with them off."""
+    if reflexes:
+        return package
+    off = package.with_name(package.name + "-engines")
+    if not off.exists():
+        shutil.copytree(package, off)
+        manifest = yaml.safe_load((off / "rra.yaml").read_text())
+        manifest["reflexes"] = {"enabled": False}
+        (off / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return off
 
 
 def _ms(xs: list[float]) -> str:

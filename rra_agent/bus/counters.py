@@ -47,6 +47,7 @@ MAX_PAYLOAD: dict[str, int] = {
     "host_ctl": 4 * MiB,  # node specs
     "engine_ctl": 64 * KiB,
     "inject": 64 * KiB,
+    "reflex": 16 * KiB,
 }
 #: The keys of each family, below ``rra/<system>/`` (`rra_agent.bus.keys`).
 FAMILY_KEYS: dict[str, str] = {
@@ -59,6 +60,7 @@ FAMILY_KEYS: dict[str, str] = {
     "host_ctl": "host/*/ctl",
     "engine_ctl": "engine/*/ctl",
     "inject": "inject/**",
+    "reflex": "reflex/*",
 }
 #: Control families: their requests are small, their replies may carry a system's state.
 _CONTROL = ("node_ctl", "host_ctl", "engine_ctl")

@@ -18,6 +18,7 @@
                                            liveliness token of the role's leader
                                            (<instance>: its session's Zenoh id)
     rra/<system>/inject/**                 scenario injections (faults, context changes)
+    rra/<system>/reflex/<node>             a node's reflex fired
 """
 
 from __future__ import annotations
@@ -117,6 +118,14 @@ class Keys:
     @property
     def inject_all(self) -> str:
         return f"{self.prefix}/inject/**"
+
+    def reflex(self, node: str) -> str:
+        """Where ``node`` reports that a reflex of it fired."""
+        return f"{self.prefix}/reflex/{check_chunk(node, 'node name')}"
+
+    @property
+    def reflex_all(self) -> str:
+        return f"{self.prefix}/reflex/*"
 
     @property
     def everything(self) -> str:

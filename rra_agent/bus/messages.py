@@ -17,6 +17,7 @@ Channels and their unions:
 - ``engine/<e>/ctl``    `EngineRequest` -> `Reply` (``ForceFeatures``, ``Explain``: the
   Adaptation Engine's; ``Inject``, ``OverrideMeasurement``: the Context Monitor's)
 - ``inject/**``         `Injection`
+- ``reflex/<n>``        `ReflexMessage`   = ReflexFired
 
 Requests that change the running system carry a `Fence`: the epoch and name of the engine
 leader that sends them. A receiver refuses a request whose fence is older than the newest it
@@ -316,6 +317,67 @@ class Shutdown(Msg, tag="shutdown"):
     fence: Fence | None = None
 
 
+# ---- reflexes (the engines' decisions compiled into the node that switches) -----------------
+class ReflexTest(msgspec.Struct, kw_only=True, forbid_unknown_fields=True, frozen=True):
+    """One comparison of a reflex's condition: ``measurement op value``."""
+
+    measurement: str
+    op: Literal["==", "!=", "<", "<=", ">", ">="]
+    value: bool | int | float | str
+
+
+class ReflexAction(
+    msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True, frozen=True
+):
+    """What the node does when its reflex fires: bind an input ``port`` to ``keys``
+    (``rewire``), or start (``activate``) or stop (``deactivate``) publishing; each as the
+    control request of the same name would."""
+
+    kind: Literal["rewire", "activate", "deactivate"]
+    port: str = ""
+    keys: list[str] = []
+
+
+class Reflex(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A decision of the engines compiled ahead: when the measurements computed from a sample
+    on ``key`` satisfy ``any_of``, the node does ``actions`` at once, then reports it
+    (`ReflexFired`). Data only: the node computes each measurement with the function its own
+    copy of the package names for it (``measurements.yaml``), never with code from the bus."""
+
+    #: Names this compiled reflex (the same decision in the same configuration: the same id).
+    id: str
+    #: The rule (``RuleSet.rule`` inside a rule set) and the branch whose decision it is.
+    rule: str
+    branch: int = 0
+    #: The measured interface, ``component.port``, and the data key its samples come on (an
+    #: output of this node, or a key one of its inputs listens to).
+    source: str
+    key: str
+    #: The measurements of the package computed from each sample (named, not shipped).
+    measurements: list[str]
+    #: The condition: it holds when every test of some inner list holds (a measurement that
+    #: cannot be computed, or is NaN, makes it false).
+    any_of: list[list[ReflexTest]]
+    actions: list[ReflexAction]
+    #: The run-time selection the engines will decide when it fires (for reports).
+    features: list[str] = []
+
+
+class InstallReflex(Msg, tag="install_reflex"):
+    """Arm a reflex (replacing one with the same ``id``); refused (``Err``) when the node
+    cannot compute its measurements or has no such port."""
+
+    reflex: Reflex
+    fence: Fence | None = None
+
+
+class WithdrawReflex(Msg, tag="withdraw_reflex"):
+    """Disarm the reflex ``id`` (empty: every reflex of the node)."""
+
+    id: str = ""
+    fence: Fence | None = None
+
+
 NodeRequest = (
     Describe
     | SetParams
@@ -328,6 +390,8 @@ NodeRequest = (
     | Ping
     | Stats
     | Claim
+    | InstallReflex
+    | WithdrawReflex
 )
 
 
@@ -352,6 +416,8 @@ class NodeInfo(Msg, tag="node_info"):
     published: int = 0
     dropped: int = 0
     rejected: int = 0
+    #: Installed reflexes by id: when each fired (wall clock), 0 while armed.
+    reflexes: dict[str, float] = {}
 
 
 class RefusedSamples(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -745,6 +811,8 @@ class EngineState(Msg, tag="engine_state"):
     degraded: list[str] = []
     #: When this state was made (wall clock).
     stamp: float = 0.0
+    #: Reflexes installed in nodes (armed, or fired and not yet confirmed).
+    reflexes: list[ReflexRecord] = []
     #: The digest of the models the engines run (`ModelBundle.digest`), and those before
     #: it, newest last (``rra reload --undo`` goes back to the last one).
     models: str = ""
@@ -752,6 +820,45 @@ class EngineState(Msg, tag="engine_state"):
 
 
 StateMessage = EngineState
+
+
+# ---- reflexes fired: ``reflex/<node>`` ----------------------------------------------------
+class ReflexFired(Msg, tag="reflex_fired"):
+    """A node's reflex fired: it did its actions (those that failed are in ``failed``); the
+    Run-time Resolution Engine confirms it with the engines' own decision or rolls it back."""
+
+    node: str
+    id: str
+    rule: str
+    #: When it fired (the node's wall clock) and the send time of the sample it fired on.
+    stamp: float
+    sample: float | None = None
+    #: The measurement values it fired on.
+    values: dict[str, bool | int | float | str] = {}
+    #: Actions that could not be done, and why (empty: all were done).
+    failed: list[str] = []
+
+
+ReflexMessage = ReflexFired
+
+
+class ReflexRecord(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
+    """A reflex the Run-time Resolution Engine leader installed, in its state (``rra status``;
+    a standby that takes over goes on from it)."""
+
+    id: str
+    rule: str
+    #: Where it is armed (every node with a part of the switch).
+    nodes: list[str]
+    #: The run-time selection the engines are expected to decide when it fires.
+    features: list[str]
+    #: What each node does when it fires (what a rollback undoes).
+    actions: dict[str, list[ReflexAction]] = {}
+    #: The run-time selection it was compiled in (its switch changes it to ``features``).
+    before: list[str] = []
+    #: When it fired (0: armed), and by which nodes.
+    fired: float = 0.0
+    fired_by: list[str] = []
 
 
 # ---- codecs -----------------------------------------------------------------------------

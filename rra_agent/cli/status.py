@@ -95,6 +95,7 @@ def _system_section(eng: dict[str, Any] | None, wide: bool) -> list[str]:
         set_ = ", ".join(f"{k}={v!r}" for k, v in sorted(values.items()))
         lines += _field("operator", f"{node}: {set_}", wide)
     lines += adaptation_lines(eng, wide)
+    lines += reflex_lines(eng, wide)
     return lines
 
 
@@ -299,6 +300,23 @@ def adaptation_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:
         who = ", ".join(f"{r} wants {wants.get(r, '?')}" for r in rules)
         since = time.strftime("%H:%M:%S", time.localtime(c.get("since") or c.get("stamp", 0)))
         lines += _field("conflict", f"{c.get('target')}: {who} (since {since})", wide)
+    return lines
+
+
+def reflex_lines(eng: dict[str, Any], wide: bool = False) -> list[str]:
+    """The reflexes the engines installed (docs/architecture.md, Reflexes): the rule, the
+    nodes that switch by themselves, the change, and whether it fired and awaits the
+    engines' confirmation; nothing when none is installed."""
+    lines = []
+    for r in (eng.get("reflexes") or {}).get("installed") or []:
+        before, after = set(r.get("before") or []), set(r.get("features") or [])
+        change = [f"+{f}" for f in sorted(after - before)]
+        change += [f"-{f}" for f in sorted(before - after)]
+        fired = r.get("fired") or 0.0
+        when = time.strftime("%H:%M:%S", time.localtime(fired)) if fired else ""
+        state = f"fired {when}, awaiting confirmation" if fired else "armed"
+        nodes = ", ".join(r.get("nodes") or [])
+        lines += _field("reflex", f"{r['rule']} in {nodes}: {', '.join(change)} ({state})", wide)
     return lines
 
 

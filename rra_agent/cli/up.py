@@ -76,6 +76,11 @@ def configure(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="replicas of each engine: a leader and N-1 hot standbys (default 2)",
     )
+    p.add_argument(
+        "--no-reflexes",
+        action="store_true",
+        help="never delegate a planned decision to a node (docs/architecture.md, Reflexes)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     p.add_argument(
         "--no-record",
@@ -102,6 +107,7 @@ def engine_specs(
     host: str,
     adaptation: bool,
     replicas: int = 2,
+    reflexes: bool = True,
     record: bool = True,
 ) -> list[m.NodeSpec]:
     """The engines as supervised processes (their command lines are their implementations)."""
@@ -120,6 +126,9 @@ def engine_specs(
             *select,
             "--run-dir",
             str(run_dir),
+            # No Adaptation Engine, no decision to confirm a reflex with: none is installed.
+            *(["--no-reflexes"] if engine == "resolution" and not (reflexes and adaptation)
+              else []),
         ]
         specs += [
             m.NodeSpec(
@@ -250,6 +259,7 @@ def _run(
     record = begin_record(dep, run_dir, args.host) if not args.no_record else False
     specs = engine_specs(
         dep, names, run_dir, args.host, not args.no_adaptation, replicas=args.replicas,
+        reflexes=not args.no_reflexes,
         record=record,
     )  # fmt: skip
     catalog = Catalog(

@@ -838,6 +838,27 @@ class AdaptationEngine:
         )
         return selection
 
+    def outcome(self, rule: str, branch: int) -> frozenset[str]:
+        """The run-time selection the next tick reaches if, of all the rules, only branch
+        ``branch`` of rule ``rule`` fires: its feature actions applied as a tick applies
+        them, from the current selection, the forced and the unavailable features (a
+        ``set_attribute`` is left out). The current selection if it changes nothing. A
+        reflex's switch is compiled for this outcome (`rra_agent.core.reflex`)."""
+        fired: list[FiredRule] = []
+        requests: list[Request] = []
+        sources: list[int] = []
+        rejected: list[Rejected] = []
+        for info in self._actions:
+            if info.fired.rule != rule or info.branch[1] != branch or info.cv >= 0:
+                continue
+            wanted = info.requests
+            if info.variants and self.unavailable:
+                wanted = self._available_variant(info, rejected)
+            requests += wanted
+            sources += [len(fired)] * len(wanted)
+            fired.append(info.fired)
+        return self._select(requests, sources, fired, rejected)
+
     def set_unavailable(self, features: Mapping[str, str]) -> bool:
         """Features that need an unavailable implementation (feature -> why): from the next
         tick they cannot be activated (the request is rejected as ``unavailable``), a
@@ -1517,6 +1538,12 @@ class AdaptationEngine:
 
 _UNSEEN = object()
 _RECORD_KIND = {"feature": "feature", "group": "alternative", "attribute": "attribute"}
+
+
+def feature_families(fm: FeatureModel) -> dict[str, object]:
+    """Run-time feature -> its family: the features one request on it can change (see
+    `request_families`); requests on different families never interact."""
+    return request_families(fm)
 
 
 def request_families(fm: FeatureModel) -> dict[str, object]:

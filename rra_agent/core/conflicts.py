@@ -279,6 +279,28 @@ def _effects(model: AdaptationModel, fm: FeatureModel) -> Iterator[_Effect]:
                     guard.append((branch.condition, False))
 
 
+def rule_effects(model: AdaptationModel, fm: FeatureModel) -> list[_Effect]:
+    """Every effect of every action of ``model`` (one per feature an action names), each
+    with its rule, rule set unit, branch, guard and claims: what `check_conflicts` compares
+    (the reflexes' analysis asks the same questions about one rule, `rra_agent.core.reflex`)."""
+    return list(_effects(model, fm))
+
+
+def may_fire_together(e1: _Effect, e2: _Effect, fm: FeatureModel) -> bool:
+    """Whether two effects' guards can hold in one tick (not proved disjoint)."""
+    return _joint(e1, e2, fm) != "unsat"
+
+
+def constant_value(expr: Expr, fm: FeatureModel) -> object:
+    """The value of a constant expression (None: undefined), or `NOT_CONSTANT`."""
+    return _const(expr, fm)
+
+
+def compare_constants(op: str, a: object, b: object) -> bool | None:
+    """``a op b`` as the engine decides it (None: undefined)."""
+    return _evaluate_compare(op, a, b)
+
+
 def _comparable(e1: _Effect, e2: _Effect) -> bool:
     """Different units, or the same branch of the same rule (ordered on purpose otherwise)."""
     if e1.unit != e2.unit:
@@ -389,6 +411,8 @@ def _shape(node: object) -> object:
 
 # ---- constant folding (conditions over CIM/NFR values, bounds and literals) -----------------
 _NOT_CONST = object()
+#: What `constant_value` returns for an expression that is not constant.
+NOT_CONSTANT = _NOT_CONST
 
 
 def _const(expr: Expr, fm: FeatureModel) -> object:

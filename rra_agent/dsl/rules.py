@@ -252,7 +252,7 @@ class _Builder(Transformer_NonRecursive):
         return _Header(str(children[0]), self._span(meta))
 
     def rule(self, meta, children) -> Rule:
-        name, priority, period, body = children
+        name, priority, period, reflex, body = children
         branches = body if isinstance(body, tuple) and isinstance(body[0], Branch) else None
         if branches is None:
             branches = (Branch(condition=None, actions=body, span=self._span(meta)),)
@@ -261,8 +261,16 @@ class _Builder(Transformer_NonRecursive):
             branches=branches,
             priority=priority,
             period_ms=period,
+            reflex=reflex is not False,
             span=self._span(meta),
         )
+
+    def reflex(self, meta, children) -> bool:
+        """``reflex on`` / ``reflex off``: whether the rule's decision may be delegated."""
+        tok = children[0]
+        if str(tok) not in ("on", "off"):
+            self._error(f"reflex takes on or off, got {tok}", self._span(tok))
+        return str(tok) != "off"
 
     def priority(self, meta, children) -> int:
         tok = children[0]
@@ -527,6 +535,7 @@ class _Resolver:
             branches=branches,
             priority=rule.priority,
             period_ms=rule.period_ms,
+            reflex=rule.reflex,
             span=rule.span,
         )
 

@@ -79,6 +79,10 @@ class ZenohActuator:
         self.history: dict[str, list[tuple[int, m.NodeState]]] = {}
         #: Nodes whose liveliness token this session sees: a direct link to them exists.
         self.alive: set[str] = set()
+        #: When each node's token last appeared (on the `seq` scale of the events): a node
+        #: declares its token once it is ready, so a token newer than a start request says
+        #: the node started, one hop before its host agent's ``RUNNING`` comes.
+        self.appeared: dict[str, int] = {}
         self.dropped = 0
         #: The leader term put on every request that changes the system (None: not leading).
         self.fence: m.Fence | None = None
@@ -102,6 +106,8 @@ class ZenohActuator:
         with self.cond:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.alive.add(parsed[1])
+                self.seq += 1
+                self.appeared[parsed[1]] = self.seq
             else:
                 self.alive.discard(parsed[1])
             self.cond.notify_all()
@@ -148,7 +154,7 @@ class ZenohActuator:
                     bad = failed(evs)
                     if bad is not None:
                         out[n] = f"{bad.state} ({bad.reason})" if bad.reason else bad.state
-                    elif not done(evs):
+                    elif not done(n, evs):
                         pending.append(n)
                 if not pending:
                     return out
@@ -218,11 +224,7 @@ class ZenohActuator:
             self._wait(
                 [s.name for s in waiting],
                 mark,
-                # RUNNING (the host agent saw the token) and the token seen here: this
-                # session also knows the node's control queryable, declared before it.
-                done=lambda evs: (
-                    any(e.state == "RUNNING" for e in evs) and evs[-1].node in self.alive
-                ),
+                done=lambda n, evs: self._ready(n, evs, mark),
                 failed=lambda evs: next(
                     (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
                 ),
@@ -235,6 +237,14 @@ class ZenohActuator:
             self._abandon([s for s in specs if s.name in failed])
             first = next(iter(failed.items()))
             raise StepFailed(f"start {first[0]}: {first[1]}", failed)
+
+    def _ready(self, node: str, evs: list[m.NodeState], mark: int) -> bool:
+        """A node started after ``mark``: its token, declared once its declarations and
+        ``on_start`` are done, seen here since (this session then also knows its control
+        queryable, declared before it), or its host agent's ``RUNNING`` with the token."""
+        if node not in self.alive:
+            return False
+        return self.appeared.get(node, 0) > mark or any(e.state == "RUNNING" for e in evs)
 
     def _abandon(self, specs: list[m.NodeSpec]) -> None:
         """Best-effort stop of nodes whose start failed (no restart loop left behind)."""
@@ -262,7 +272,7 @@ class ZenohActuator:
             self._wait(
                 [s.name for s in waiting],
                 mark,
-                done=lambda evs: any(e.state in TERMINAL for e in evs),
+                done=lambda n, evs: any(e.state in TERMINAL for e in evs),
                 failed=lambda evs: None,
                 timeout=self.stop_timeout,
                 what="stop",

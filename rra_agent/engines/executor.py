@@ -227,6 +227,18 @@ def spec_for(
     )
 
 
+def must_deactivate(replacement: Replacement, old: NodeSpec, new: NodeSpec) -> bool:
+    """Whether a swap deactivates the node it swaps out. An old node that is stopped after
+    the switch and publishes on other keys than its replacement needs no deactivation: the
+    rewire of its subscribers, in the connect batch, already cut it off. One that stays
+    (standby) or shares output keys does; one that stays hot goes on publishing on its own
+    keys, which its consumers deselected."""
+    shared = bool(_outputs(old) & _outputs(new))
+    if replacement.hot(old.name):
+        return shared
+    return shared or replacement.pre_started(old.name)
+
+
 def _names(specs: Iterable[NodeSpec]) -> str:
     return ",".join(s.name for s in specs)
 
@@ -693,14 +705,7 @@ class Executor:
             self._switched = self.clock()
 
     def _must_deactivate(self, w: _Swap) -> bool:
-        """An old node that is stopped after the switch and publishes on other keys than its
-        replacement needs no deactivation: the rewire of its subscribers, in the connect
-        batch, already cut it off. One that stays (standby) or shares output keys does; one
-        that stays hot goes on publishing on its own keys, which its consumers deselected."""
-        shared = bool(_outputs(w.old) & _outputs(w.new))
-        if self.replacement.hot(w.old.name):
-            return shared
-        return shared or self.replacement.pre_started(w.old.name)
+        return must_deactivate(self.replacement, w.old, w.new)
 
     @staticmethod
     def _activation(spec: NodeSpec, active: bool, unit: int, state: Any = None) -> Ctl:

@@ -54,6 +54,7 @@ from rra_agent.core.availability import (
     component_needs,
     needed_by,
     requirements,
+    unavailable_features,
 )
 from rra_agent.core.cv import clamp_cv
 from rra_agent.core.effect import effective_model, in_effect
@@ -71,10 +72,11 @@ from rra_agent.deployment import Deployment
 from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
-from rra_agent.engines.executor import Executor, Outcome, StepFailed, UnitFailure, spec_for
+from rra_agent.engines.executor import Ctl, Executor, Outcome, StepFailed, UnitFailure, spec_for
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.models import deploy_bundle, find_bundle
 from rra_agent.engines.reconcile import observe, takeover_plan
+from rra_agent.engines.reflexes import ReflexCompiler, ReflexKeeper, Situation
 from rra_agent.engines.reload import (
     changed_decls,
     commit_hosts,
@@ -120,6 +122,10 @@ _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ENGINE_REQ = m.Codec[m.EngineRequest](m.EngineRequest)
+_REFLEX = m.Codec[m.ReflexMessage](m.ReflexMessage)
+#: How often the leader checks, besides after every change, that the reflexes the
+#: configuration allows are installed (a node restarted without them, a host back).
+REFLEX_SYNC = 1.0
 
 
 class ResolutionEngineProcess(EngineProcess):
@@ -138,6 +144,7 @@ class ResolutionEngineProcess(EngineProcess):
         retry_after: float = 30.0,
         start_timeout: float = 15.0,
         reconcile_period: float = 1.0,
+        reflexes: bool = True,
         record: bool = True,
     ) -> None:
         super().__init__(dep, bus, host=host, name=name)
@@ -208,6 +215,14 @@ class ResolutionEngineProcess(EngineProcess):
         self.sink: EventSink | None = None
         self._state_pub: zenoh.Publisher | None = None
         self._state_sent = 0.0
+        #: Reflexes: decisions compiled into the nodes that switch (`engines.reflexes`).
+        settings = dep.package.manifest.reflexes
+        self.reflexes = ReflexKeeper(
+            ReflexCompiler(dep), self._reflex_send, self._reflex_event, self._spec_of,
+            enabled=reflexes and settings.enabled, confirm_s=settings.confirm_ms / 1000.0,
+            log=lambda text: print(f"rra {self.name}: {text}", flush=True), refuse=self.refuse,
+        )  # fmt: skip
+        self._reflexes_synced = 0.0
 
     # ---- the model side (pure, on the main thread) ---------------------------------------
     def target(self, selection: frozenset[str], cv: dict[str, float]) -> SystemModel:
@@ -346,6 +361,7 @@ class ResolutionEngineProcess(EngineProcess):
         self.effective_cv = dict(state.cv if old else state.effective_cv)
         self.unavailable = {(u.component, u.implementation): u for u in state.unavailable}
         self.degraded = list(state.degraded)
+        self.reflexes.mirror(state.reflexes)
 
     def stalled(self) -> None:
         """Re-sync the mirror from the leader at once (publications were missed)."""
@@ -404,6 +420,7 @@ class ResolutionEngineProcess(EngineProcess):
             self.election.observe_epoch(highest)
             return
         self._event("takeover", f"{self.name} leads (epoch {fence.epoch})", None)
+        self.reflexes.take_over()
         if self.mirror is not None:
             self._adopt_mirror(self.mirror)
         else:
@@ -501,6 +518,8 @@ class ResolutionEngineProcess(EngineProcess):
         if checked is None:
             return None
         selection, cv = checked
+        if selection != self.selection and self.reflexes.fired:
+            self.reflexes.decided(selection)
         noted = (msg.forced, msg.conflicts) != (self.forced, self.conflicts)
         self.forced, self.conflicts = dict(msg.forced), list(msg.conflicts)
         readmitted = self._readmit_forced(msg)
@@ -1047,12 +1066,15 @@ class ResolutionEngineProcess(EngineProcess):
             unavailable=sorted(self.unavailable.values(), key=lambda u: (u.component, u.since)),
             degraded=list(self.degraded),
             stamp=self._stamp,
+            reflexes=self.reflexes.state(),
             models=self.dep.models,
             history=list(self.history),
         )
 
     def _changed(self) -> None:
-        """The desired state changed: publish it (standbys mirror it), persist it."""
+        """The desired state changed: publish it (standbys mirror it), persist it, and keep
+        the reflexes it allows installed."""
+        self._sync_reflexes()
         self.version += 1
         self._stamp = time.time()
         state = self._publish_state()
@@ -1135,6 +1157,7 @@ class ResolutionEngineProcess(EngineProcess):
             "deployed": self.deployed,
             # What was decided is not all in effect: a plan failed in part.
             "failed": bool(self.degraded),
+            "reflexes": self.reflexes.status(),
             "models": self.dep.models,
         }
 
@@ -1204,6 +1227,71 @@ class ResolutionEngineProcess(EngineProcess):
         if self.viz:
             self.viz.event(event)
 
+    # ---- reflexes (rra_agent.engines.reflexes) -------------------------------------------
+    def _on_reflex(self, sample: zenoh.Sample) -> None:
+        """A node's reflex fired (Zenoh thread): every replica records it."""
+        msg = receive(sample.payload, "reflex", _REFLEX)
+        if isinstance(msg, Refused):
+            return self.drop(msg.code, f"reflex report: {msg.detail}")
+        if str(sample.key_expr) != self.keys.reflex(msg.node):
+            self.refuse("reflex", f"report of {msg.node} on {sample.key_expr}")
+            return None
+        self.counters.received += 1
+        self.loop.post(lambda: self._reflex_fired(msg))
+        return None
+
+    def _reflex_fired(self, msg: m.ReflexFired) -> None:
+        fired = self.reflexes.on_fired(msg)
+        if fired is not None and self.leading:
+            self.reflexes.decided(self.selection)  # the engines may have decided already
+            self._changed()
+
+    def _situation(self) -> Situation:
+        gone = {need: u.reason for need, u in self.unavailable.items()}
+        return Situation(
+            selection=self.selection, cv=dict(self.cv), forced=dict(self.forced),
+            unavailable=unavailable_features(self.needs, gone),
+            conflicts=frozenset(r for c in self.conflicts for r in c.rules),
+            runtime_model=self.runtime_model, running=dict(self.executor.running),
+            standby=dict(self.executor.standby), reachable=self.reachable, target=self.target,
+            degraded=bool(self.degraded) or self._retry_at is not None
+            or self.effective != self.selection,
+        )  # fmt: skip
+
+    def _sync_reflexes(self) -> None:
+        """Install what the configuration allows, withdraw what it does not (the leader)."""
+        if not (self.leading and self.deployed):
+            return
+        self._reflexes_synced = time.monotonic()
+        self.reflexes.sync(self._situation())
+
+    def _reflexes_due(self) -> None:
+        """Periodically: roll back what was not confirmed in time, re-check what is installed."""
+        if not (self.leading and self.deployed):
+            return
+        if self.reflexes.fired:
+            self.reflexes.tick()
+        if time.monotonic() - self._reflexes_synced >= REFLEX_SYNC:
+            self._sync_reflexes()
+
+    def _reflex_send(self, batch: list[Ctl]) -> list[m.Reply]:
+        return self.actuator.control(batch)
+
+    def _spec_of(self, node: str) -> m.NodeSpec | None:
+        return self.executor.running.get(node) or self.executor.standby.get(node)
+
+    def _reflex_event(self, kind: str, text: str, **fields: Any) -> None:
+        """An adaptation event about a reflex (fired and confirmed, or rolled back)."""
+        self.seq += 1
+        event = m.AdaptationEvent(
+            stamp=time.time(), kind=kind, message=text, source=self.name, seq=self.seq,
+            fence=self.fence, selection=self.applied, **fields,
+        )  # fmt: skip
+        if self.sink is not None:
+            self.sink.emit(event, publish=self.leading)
+        if self.viz:
+            self.viz.event(event)
+
     # ---- lifecycle ---------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
         writer = open_writer(self.run_dir if self._recording else None, self.name, self.role,
@@ -1252,6 +1340,7 @@ class ResolutionEngineProcess(EngineProcess):
             session.declare_subscriber(self.keys.selection, self._on_selection),
             session.declare_subscriber(self.keys.state(NAME), self._on_state),
             session.declare_subscriber(self.keys.events, self._on_event),
+            session.declare_subscriber(self.keys.reflex_all, self._on_reflex),
             lv.declare_subscriber(self.keys.host_alive_all, self._on_host, history=True),
             self.adaptation,
         ]
@@ -1290,6 +1379,7 @@ class ResolutionEngineProcess(EngineProcess):
             self._retry_at = None
             self.converge()  # what the last plan could not apply, again
         self._probe_due()
+        self._reflexes_due()
         if self._reconcile_soon or now >= self._next_reconcile:
             reason = "a host reported a change" if self._reconcile_soon else "periodic"
             self._reconcile_soon = False
@@ -1575,6 +1665,9 @@ def arguments() -> argparse.ArgumentParser:
     parser.add_argument("--retry-after", type=float, default=5.0)
     parser.add_argument("--start-timeout", type=float, default=15.0)
     parser.add_argument("--reconcile-period", type=float, default=1.0)
+    parser.add_argument(
+        "--no-reflexes", action="store_true", help="never delegate a decision to a node"
+    )
     return parser
 
 
@@ -1603,6 +1696,7 @@ def main(argv: list[str] | None = None) -> int:
         retry_after=args.retry_after,
         start_timeout=args.start_timeout,
         reconcile_period=args.reconcile_period,
+        reflexes=not args.no_reflexes,
         record=not args.no_record,
     )
     return engine.run()

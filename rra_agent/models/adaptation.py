@@ -219,6 +219,8 @@ class Rule(Node, frozen=True, tag="rule"):
     branches: tuple[Branch, ...]
     priority: int | None = None
     period_ms: float | None = None
+    #: False (``reflex off``): the decision is never delegated to a node as a reflex.
+    reflex: bool = True
     span: Span | None = None
 
 

@@ -20,6 +20,19 @@ class ProcessSettings(FrozenModel, frozen=True):
     scheduling: Scheduling = Scheduling()
 
 
+class ReflexSettings(FrozenModel, frozen=True):
+    """Reflexes (docs/architecture.md, Reflexes): rules whose decision the engines compile
+    ahead into the node that has to switch, which then switches on the sample itself."""
+
+    #: False: no reflex is ever installed for this package (``rra up --no-reflexes`` too).
+    enabled: bool = True
+    #: A reflex that fired must be confirmed by the engines' own decision within this long
+    #: (milliseconds); otherwise they roll its switch back.
+    confirm_ms: float = 500.0
+
+    def __post_init__(self) -> None:
+        if not self.confirm_ms > 0:
+            raise ValueError("reflexes: confirm_ms must be positive")
 class Ros2Settings(FrozenModel, frozen=True):
     """The ROS 2 side of a system (docs/ros2.md): the ROS domain its ROS 2 nodes share, the
     distribution whose message definitions they use, and the folder of the package's own
@@ -58,5 +71,7 @@ class Manifest(FrozenModel, frozen=True):
     #: How the host agents (``rra up``, ``rra agent``) schedule themselves: each runs its
     #: host's Zenoh router, which every sample of the host passes through.
     agents: ProcessSettings = ProcessSettings()
+    #: Whether and how the engines delegate decisions they have planned to nodes.
+    reflexes: ReflexSettings = ReflexSettings()
     #: The system's ROS 2 side (None: it has none).
     ros2: Ros2Settings | None = None

@@ -48,7 +48,12 @@ from rra_agent.models.system import coerce_parameter
 from rra_agent.node.api import NodeError
 from rra_agent.node.core import NodeCore
 from rra_agent.node.loading import load_node_class
-from rra_agent.node.runtime import ZenohTransport, control_callback, must_wake
+from rra_agent.node.runtime import (
+    ZenohTransport,
+    control_callback,
+    must_wake,
+    reflex_reporter,
+)
 
 _REQ = m.Codec[m.ContainerRequest](m.ContainerRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
@@ -224,6 +229,7 @@ class ContainerRuntime:
                 spec, node_cls, transport, logger=_stderr, pid=os.getpid(), contained=True,
                 max_data=self.bus.max_data_bytes,
             )  # fmt: skip
+            core.on_reflex = reflex_reporter(self.session, self.keys.reflex(spec.name))
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = self.session.declare_queryable(

@@ -14,6 +14,7 @@ from typing import Any, Protocol
 
 import msgspec
 
+from rra_agent import trace
 from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD, Counters, RateLimitedLog
@@ -21,6 +22,7 @@ from rra_agent.bus.data import DATA_DECODER, DATA_ENCODER
 from rra_agent.core.election import Term, newer
 from rra_agent.models.system import ParamType, coerce_parameter
 from rra_agent.node.api import Node, NodeContext, NodeError, RawCallback
+from rra_agent.node.reflex import Fire, Reflexes
 
 
 class Transport(Protocol):
@@ -131,6 +133,14 @@ class NodeCore:
         self.fence: Term | None = spec.fence.term if spec.fence else None
         self._refusals = RateLimitedLog(self.log)
         self.stop_requested = threading.Event()
+        #: Reflexes the engines installed (`rra_agent.node.reflex`), fires not yet acted on
+        #: (a sample of the node's own output fires after the node code that published it
+        #: returns), and how deep in node code this thread is.
+        self.reflexes = Reflexes(list(spec.path))
+        self._due: list[Fire] = []
+        self._inside = 0
+        #: Reports a fired reflex (the runtime puts it on ``reflex/<node>``).
+        self.on_reflex: Callable[[m.ReflexFired], None] | None = None
         try:
             self.node = node_cls(NodeContext(self))
         except BaseException as e:
@@ -163,7 +173,13 @@ class NodeCore:
 
     def step(self, now: float) -> None:
         with self.lock:
-            self._guard("step", self.node.step, now)
+            self._inside += 1
+            try:
+                self._guard("step", self.node.step, now)
+            finally:
+                self._inside -= 1
+            if self._due:
+                self._fire_due()
 
     # ---- data --------------------------------------------------------------------------
     def deliver(
@@ -199,25 +215,41 @@ class NodeCore:
             return
         lock = self.lock
         lock.acquire()
+        delivered = False
         try:
             if key is not None and key not in self.ports[port].keys:
                 self.counters.bump("unselected")
                 return
             self.counters.received += 1
-            self.node.on_message(port, data, stamp)
+            delivered = True
+            self._inside += 1
+            try:
+                self.node.on_message(port, data, stamp)
+            finally:
+                self._inside -= 1
         except self._catch as e:  # a bug in node code must not reach the bus callback
             self._error("on_message", e)
         finally:
-            lock.release()
+            try:  # the node has seen the sample; then the reflexes computed from it
+                if delivered and key in self.reflexes.watched:
+                    self._due += self.reflexes.evaluate(key, payload, stamp)  # type: ignore[arg-type]
+                if self._due and not self._inside:
+                    self._fire_due()
+            finally:
+                lock.release()
 
     def hold(self, port: str, key: str, payload: bytes, stamp: float | None) -> None:
         """A sample on a standby key of ``port`` (a hot standby's output): delivered if the
         key is selected by now, else kept, the newest only, for the switch to it."""
         with self.lock:
             if key in self.ports[port].keys:
-                self.deliver(port, payload, stamp)
+                self.deliver(port, payload, stamp, key)
             elif self._valid(port, payload):  # junk must not displace a good held sample
                 self._held[(port, key)] = (payload, stamp, self.monotonic())
+                if key in self.reflexes.watched:
+                    self._due += self.reflexes.evaluate(key, payload, stamp)
+                    if not self._inside:
+                        self._fire_due()
 
     def _valid(self, port: str, payload: bytes) -> bool:
         """Whether ``payload`` is a data sample `deliver` would accept (else dropped, counted)."""
@@ -257,9 +289,58 @@ class NodeCore:
             raise NodeError(f"node {self.spec.name} has no output port {port!r}")
         if not self.active:
             return False
-        self.transport.publish(port, DATA_ENCODER.encode(data), self.clock())
+        payload, stamp = DATA_ENCODER.encode(data), self.clock()
+        self.transport.publish(port, payload, stamp)
         self.published += 1
+        if self.reflexes.watched:
+            self._own_sample(self.ports[port].keys[0], payload, stamp)
         return True
+
+    # ---- reflexes ----------------------------------------------------------------------
+    def _own_sample(self, key: str, payload: bytes, stamp: float) -> None:
+        """A sample this node published: its reflexes on that key fire once the node code
+        that published it has returned (never inside it)."""
+        if key not in self.reflexes.watched:
+            return
+        with self.lock:
+            self._due += self.reflexes.evaluate(key, payload, stamp)
+            if self._due and not self._inside:
+                self._fire_due()
+
+    def _fire_due(self) -> None:
+        """Act on the reflexes whose condition held (the lock held, no node code running):
+        each does its actions as the control requests of the same names would, then is
+        reported."""
+        due, self._due = self._due, []
+        for fire in due:
+            armed, now = fire.armed, self.clock()
+            self.reflexes.spent(armed, now)
+            failed = []
+            for action in armed.spec.actions:
+                try:
+                    self._reflex_action(action)
+                except self._catch as e:  # NodeError is an Exception
+                    failed.append(f"{action.kind} {action.port}: {type(e).__name__}: {e}".strip())
+            trace.mark("node:reflex", self.spec.name)
+            self.counters.bump("reflexes_fired")
+            msg = m.ReflexFired(
+                node=self.spec.name, id=armed.spec.id, rule=armed.spec.rule, stamp=now,
+                sample=fire.sample, values=fire.values, failed=failed,
+            )  # fmt: skip
+            if self.on_reflex is not None:
+                self._guard("reflex report", self.on_reflex, msg)
+            values = ", ".join(f"{k} = {v}" for k, v in fire.values.items())
+            self.log(f"reflex {armed.spec.rule} fired ({values})"
+                     + (f"; failed: {'; '.join(failed)}" if failed else ""))  # fmt: skip
+
+    def _reflex_action(self, action: m.ReflexAction) -> None:
+        match action.kind:
+            case "rewire":
+                self._rewire(action.port, list(action.keys))
+            case "activate":
+                self._set_active(True)
+            case "deactivate":
+                self._set_active(False)
 
     def subscribe_raw(self, key_expr: str, callback: RawCallback) -> None:
         def guarded(key: str, payload: bytes, stamp: float | None) -> None:
@@ -272,6 +353,7 @@ class NodeCore:
     def handle(self, request: m.NodeRequest) -> m.Reply:
         """Answer one control request; never raises."""
         with self.lock:
+            self._inside += 1
             try:
                 return self._handle(request)
             except NodeError as e:
@@ -280,6 +362,10 @@ class NodeCore:
                 during = _HOOKS.get(type(request), request.__struct_config__.tag)
                 f = self._error(str(during), e)
                 return m.Err(message=f"{type(e).__name__}: {e}", code="node_error", failure=f)
+            finally:
+                self._inside -= 1
+                if self._due and not self._inside:
+                    self._fire_due()
 
     def _handle(self, request: m.NodeRequest) -> m.Reply:
         fence = getattr(request, "fence", None)
@@ -322,6 +408,13 @@ class NodeCore:
                 return m.Ok()
             case m.Shutdown():
                 self.stop_requested.set()
+                return m.Ok()
+            case m.InstallReflex(reflex=reflex):
+                self.reflexes.install(reflex, self.ports)
+                self.log(f"reflex {reflex.rule} installed ({reflex.id})")
+                return m.Ok()
+            case m.WithdrawReflex(id=ident):
+                self.reflexes.withdraw(ident)
                 return m.Ok()
         raise NodeError(f"unsupported request {type(request).__name__}")
 
@@ -423,11 +516,14 @@ class NodeCore:
             published=self.published,
             dropped=self.counters.dropped,
             rejected=self.counters.rejected,
+            reflexes=self.reflexes.state(),
         )
 
     def stats(self) -> m.ProcessStats:
         c = self.counters
         c.extra.update(published=self.published, errors=self.errors)
+        if self.reflexes.by_id or self.reflexes.fired:
+            c.extra.update(reflexes=len(self.reflexes.by_id), reflex_errors=self.reflexes.errors)
         if self.fence is not None:
             c.extra["fence_epoch"] = self.fence[0]
         return msgspec.structs.replace(

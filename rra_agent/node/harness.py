@@ -49,6 +49,7 @@ class NodeHarness:
         active: bool = True,
         state: Any = None,
         now: float = 0.0,
+        path: list[str] | None = None,
     ) -> None:
         self.time = now
         self.transport = _CaptureTransport()
@@ -64,8 +65,11 @@ class NodeHarness:
             },
             active=active,
             state=state,
+            path=list(path or []),
         )
         self.logs: list[str] = []
+        #: The reflexes that fired (`ReflexFired`), as the node reported them.
+        self.fired: list[m.ReflexFired] = []
         self.core = NodeCore(
             spec,
             node_cls,
@@ -74,6 +78,7 @@ class NodeHarness:
             logger=self.logs.append,
             monotonic=lambda: self.time,
         )
+        self.core.on_reflex = self.fired.append
         self.core.start()
 
     @property
@@ -81,7 +86,10 @@ class NodeHarness:
         return self.core.node
 
     def send(self, port: str, data: Any, stamp: float | None = None) -> None:
-        self.core.deliver(port, encode_data(data), stamp)
+        """Deliver ``data`` on input ``port`` as if it came on the port's first key."""
+        spec = self.core.ports.get(port)
+        key = spec.keys[0] if spec is not None and spec.keys else None
+        self.core.deliver(port, encode_data(data), stamp, key)
 
     def send_raw(self, port: str, payload: bytes) -> None:
         self.core.deliver(port, payload, None)

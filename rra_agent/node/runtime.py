@@ -48,6 +48,7 @@ from rra_agent.node.core import NodeCore
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
+_REFLEX = m.Codec[m.ReflexMessage](m.ReflexMessage)
 #: The data samples' send-time attachment (as `messages.pack_stamp`), inlined on the hot path.
 _STAMP = struct.Struct("<d")
 
@@ -72,6 +73,16 @@ def control_callback(core: NodeCore, wake: Callable[[], None]):
             wake()
 
     return callback
+
+
+def reflex_reporter(session: zenoh.Session, key: str) -> Callable[[m.ReflexFired], None]:
+    """How a node reports a reflex that fired: on ``reflex/<node>``, ahead of data (the
+    engines confirm it or roll it back)."""
+
+    def report(msg: m.ReflexFired) -> None:
+        session.put(key, _REFLEX.encode(msg), **CONTROL_QOS)
+
+    return report
 
 
 def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:
@@ -199,6 +210,7 @@ class NodeRuntime:
             transport = self.make_transport(session)
             core = self.make_core(transport)
             self.core = core
+            core.on_reflex = reflex_reporter(session, self.keys.reflex(self.spec.name))
             for name, port in core.ports.items():
                 transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = session.declare_queryable(

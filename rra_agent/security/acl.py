@@ -35,7 +35,8 @@ components between hosts):
   ``inject/**`` (`rra_agent.node.NodeContext.subscribe`'s documented use, fault injection),
   and receive puts and deletes there;
 - declare its control queryable ``node/<name>/ctl``, receive queries there and reply;
-- declare its liveliness token ``alive/<host>/<name>``.
+- declare its liveliness token ``alive/<host>/<name>``;
+- put on ``reflex/<name>``: a reflex the engines installed in it fired.
 
 A system with a ROS 2 side (``ros2:`` in ``rra.yaml``; docs/ros2.md) also allows, in its
 ROS domain D, everything on ``D/**`` (topics and services) and ``@ros2_lv/D/**`` (the graph's
@@ -90,6 +91,7 @@ _OPERATOR_READS = (
     "lead/**",
     "hostagent/**",
     "data/**",
+    "reflex/*",
 )
 #: A host with no name in the model.
 DEFAULT_HOST = "local"
@@ -115,6 +117,8 @@ class NodeKeys:
     subscribe: tuple[str, ...]
     ctl: str
     alive: str
+    #: Where it reports a reflex that fired.
+    reflex: str = ""
 
 
 def node_keys(model: SystemModel, component: Component, host: str) -> NodeKeys:
@@ -142,6 +146,7 @@ def node_keys(model: SystemModel, component: Component, host: str) -> NodeKeys:
         subscribe=tuple(subscribe),
         ctl=keys.node_ctl(component.name),
         alive=keys.alive(host, component.name),
+        reflex=keys.reflex(component.name),
     )
 
 
@@ -194,9 +199,10 @@ def _node_rules(n: NodeKeys, keys: Keys) -> list[dict[str, Any]]:
     # a declared publisher sends only where it knows of a subscriber: a node with outputs
     # is told of the subscribers on data keys (wildcard readers such as an operator's too)
     matching = [f"{keys.prefix}/data/**"] if n.publish else []
+    matching += [n.reflex] if n.reflex else []
     p = f"node:{n.name}/"
     return [
-        _rule(p + "publish", ["put"], "ingress", n.publish),
+        _rule(p + "publish", ["put"], "ingress", [*n.publish, *([n.reflex] if n.reflex else [])]),
         _rule(p + "publish-matching", ["declare_subscriber"], "egress", matching),
         _rule(p + "subscribe", ["declare_subscriber"], "ingress", reads),
         _rule(p + "receive", ["put", "delete"], "egress", reads),

@@ -412,9 +412,19 @@ class ProplossController(_ControllerNode):
             self._apply_failed_param()
 
     def on_telemetry(self, data: dict[str, Any]) -> None:
+        known = self.failed_motor is not None
         k = self.ctl.observe_telemetry(data)
         if k is not None:
             self.failed_motor = k
+        if k is not None and not known and self.estimate is not None and self.setpoint:
+            # The failure is known: a command at once, from the newest estimate, rather
+            # than at the next estimate (up to a step later): a consumer that has just
+            # switched to this controller (a reflex) gets it one hop after the telemetry.
+            trace.mark("node:failure_known", self.ctx.name)
+            cmd = self.ctl.update(self.estimate, self.setpoint)
+            if cmd is not None:
+                self.last_command = [float(w) for w in cmd]
+                self.ctx.publish("motor_cmd", self._message(self.last_command))
 
     def compute(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray | None:
         return self.ctl.update(est, sp)

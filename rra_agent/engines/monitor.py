@@ -82,8 +82,8 @@ from rra_agent.errors import RraError
 from rra_agent.models.measurements import is_ros2_source
 from rra_agent.models.system import parse_endpoint
 from rra_agent.package.bundle import ModelBundle
+from rra_agent.package.functions import measurement_functions as package_measurement_functions
 from rra_agent.package.imports import import_dotted as import_dotted
-from rra_agent.package.imports import measurement_functions as package_measurement_functions
 from rra_agent.record.hooks import MonitorRecorder, open_writer
 from rra_agent.viz.rerun_log import Logger, open_logger
 
@@ -99,7 +99,7 @@ _REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
-    """Measurement name -> its function (`rra_agent.package.imports.measurement_functions`)."""
+    """Measurement name -> its function (`rra_agent.package.functions.measurement_functions`)."""
     return package_measurement_functions(dep.package)
 
 

@@ -11,7 +11,6 @@ computes, and no code ever travels on the bus.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -19,22 +18,10 @@ from typing import Any
 from rra_agent.errors import RraError
 from rra_agent.models.manifest import MANIFEST, Manifest
 from rra_agent.models.measurements import Measurement, MeasurementsModel
-from rra_agent.package.imports import add_package_path
+from rra_agent.models.system import parse_endpoint
+from rra_agent.package.contents import SystemPackage
+from rra_agent.package.imports import add_package_path, import_dotted
 from rra_agent.package.yamlload import load_yaml
-
-
-def import_dotted(dotted: str) -> Any:
-    """``pkg.module.attr`` -> the object (the longest importable module prefix is used)."""
-    parts = dotted.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:i]))
-        except ModuleNotFoundError:
-            continue
-        for attr in parts[i:]:
-            obj = getattr(obj, attr)
-        return obj
-    raise RraError(f"cannot import {dotted!r}")
 
 
 def function_path(
@@ -72,3 +59,30 @@ def load_measurements(root: str | Path) -> MeasurementsModel:
         manifest = load_yaml(folder / MANIFEST, Manifest)[0]
     model: MeasurementsModel = load_yaml(folder / manifest.measurements, MeasurementsModel)[0]
     return model
+
+
+def measurement_functions(pkg: SystemPackage) -> dict[str, Callable[..., Any]]:
+    """Measurement name -> its function, for every measurement of ``pkg`` that has one (the
+    package folder put on the import path first): the Context Monitor's and the replay's."""
+    add_package_path([pkg.root])
+    out = {}
+    for meas in pkg.measurements.measurements:
+        dotted = function_path(pkg.measurements, meas, _port_types(pkg, meas))
+        if dotted is None:
+            continue
+        fn = import_dotted(dotted)
+        if not callable(fn):
+            raise RraError(f"function {dotted!r} of measurement {meas.name} is not callable")
+        out[meas.name] = fn
+    return out
+
+
+def _port_types(pkg: SystemPackage, meas: Measurement) -> list[str | None]:
+    """The type each source port of ``meas`` declares (a ROS 2 topic's measurement: none)."""
+    out: list[str | None] = []
+    for src in meas.inputs if meas.ros2_topic is None else ():
+        ep = parse_endpoint(src)
+        comp = pkg.system.component(ep.component)
+        port = comp.port(ep.port) if comp else None
+        out.append(port.type if port else None)
+    return out

@@ -20,14 +20,12 @@ from __future__ import annotations
 
 import importlib
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 from rra_agent.errors import RraError
-from rra_agent.models.system import parse_endpoint
-from rra_agent.package.contents import SystemPackage
 
 
 def add_package_path(folders: Iterable[str | Path]) -> None:
@@ -92,31 +90,3 @@ def import_dotted(dotted: str) -> Any:
             obj = getattr(obj, attr)
         return obj
     raise RraError(f"cannot import {dotted!r}")
-
-
-def measurement_functions(pkg: SystemPackage) -> dict[str, Callable[..., Any]]:
-    """Measurement name -> its function: a function of the source data type, or a dotted path.
-
-    The package folder is appended to ``sys.path`` (`rra_agent.package.imports`) so a
-    package may ship its own functions.
-    """
-    add_package_path([pkg.root])
-    out = {}
-    for meas in pkg.measurements.measurements:
-        if meas.function is None:
-            continue
-        dotted = meas.function
-        if "." not in dotted:
-            for src in meas.inputs if meas.ros2_topic is None else ():
-                ep = parse_endpoint(src)
-                comp = pkg.system.component(ep.component)
-                port = comp.port(ep.port) if comp else None
-                dt = pkg.measurements.data_type(port.type) if port else None
-                if dt is not None and dotted in dt.functions:
-                    dotted = dt.functions[dotted]
-                    break
-        fn = import_dotted(dotted)
-        if not callable(fn):
-            raise RraError(f"function {dotted!r} of measurement {meas.name} is not callable")
-        out[meas.name] = fn
-    return out

@@ -51,7 +51,7 @@ from rra_agent.models.adaptation import (
 from rra_agent.models.features import FeatureModel
 from rra_agent.models.measurements import is_ros2_source
 from rra_agent.package.bundle import bundle_of
-from rra_agent.package.imports import measurement_functions
+from rra_agent.package.functions import measurement_functions
 from rra_agent.package.loader import load_package
 from rra_agent.record import format as f
 from rra_agent.record.run import (

@@ -482,11 +482,14 @@ def test_forged_and_invalid_selections_are_refused_and_bounded(system):
     sel = m.Codec[m.SelectionMessage](m.SelectionMessage)
     adaptation = wait_until(lambda: engine_status(sys_, "adaptation"), 15, "the adaptation leader")
     real = m.Fence.of(tuple(adaptation["leader"]))  # type: ignore[arg-type]
+    # Forged under the system's own models: each is refused for what it says (a selection
+    # under other models is refused before anything else, tests/test_reload.py).
+    models = adaptation["models"]
 
     def put(features: list[str], cv: dict, fence: m.Fence | None) -> None:
         sys_.client.session.put(K.selection, sel.encode(m.Selection(
             seq=10_000, stamp=time.time(), deployment=["Relay"], features=features, cv=cv,
-            changed=True, fence=fence)))  # fmt: skip
+            changed=True, fence=fence, models=models)))  # fmt: skip
 
     def rejected() -> int:
         st = sys_.gather()

@@ -95,8 +95,12 @@ EXIT_SETUP = 71
 #: Spare node processes kept forked, adopted and waiting for a request: a start then costs
 #: neither a fork nor the wait for the adoption (measured ~7 ms of a 20 ms cold start).
 SPARES = int(os.environ.get("RRA_SPARE_NODES", "1"))
-#: Seconds without a request after which the branch (`_Branch`) is retired.
-BRANCH_IDLE = float(os.environ.get("RRA_BRANCH_IDLE", "5"))
+#: Seconds without a request after which the branch (`_Branch`) is retired; 0 (the default):
+#: never. Retiring saves ~9 MiB, but the next engine start forks and warms a new branch, and
+#: that warm-up (~0.5 s of CPU) lands exactly when a killed engine is replaced: on two cores
+#: it delayed the standby Resolution Engine's first plan after a kill -9 from ~0.2 to ~0.6 s
+#: (scenarios/quadcopter/engine_faults.scenario.yaml, resolution_killed).
+BRANCH_IDLE = float(os.environ.get("RRA_BRANCH_IDLE", "0"))
 
 
 def _prctl(option: int, value: int) -> bool:
@@ -353,7 +357,7 @@ class _Branch:
         tenth of a second, until it has exited); None: nothing."""
         if self.retired:
             return 0.1
-        if self.pid is None:
+        if self.pid is None or BRANCH_IDLE <= 0:
             return None
         return max(0.0, self.last + BRANCH_IDLE - now)
 
@@ -365,7 +369,7 @@ class _Branch:
                 if os.waitpid(pid, os.WNOHANG)[0] == 0:
                     continue
             self.retired.remove(pid)
-        if self.pid is None or now < self.last + BRANCH_IDLE:
+        if self.pid is None or BRANCH_IDLE <= 0 or now < self.last + BRANCH_IDLE:
             return False
         self.retire()
         return True

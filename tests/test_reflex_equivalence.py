@@ -1,5 +1,5 @@
 """The same decisions with reflexes and without (issue 25 item 2): the shipped scenario cases
-where a reflex acts (``RRA_EQUIVALENCE=all``: every case of every shipped scenario) run twice
+where a reflex acts (with ``-m slow``: every other case of every shipped scenario) run twice
 as real systems, once as shipped (reflexes on where eligible) and
 once from a copy of its package with ``reflexes: {enabled: false}``; the selections the
 Adaptation Engine made (in order, repeats dropped), their CV values, what was in effect at the
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -42,15 +41,18 @@ def label_of(path: Path, case: str | None) -> str:
 #: would be between two runs without any. The quadcopter's motor failure, and the same with
 #: the Resolution Engine leader killed 0.2 s before it (the reflex confirmed by its standby).
 FIRES = {"quadcopter/motor_failure/adaptive", "quadcopter/engine_faults/resolution_killed"}
-#: ``RRA_EQUIVALENCE=all`` runs every case of every shipped scenario (about 8 minutes here);
-#: by default only those where a reflex acts, as in every other case both runs take the
-#: engines' path and the comparison can only repeat the scenario's own run-to-run timing.
-ALL = os.environ.get("RRA_EQUIVALENCE") == "all"
+#: Every other case of every shipped scenario is marked ``slow`` (``pytest -m slow
+#: tests/test_reflex_equivalence.py``, about 8 minutes here): in those both runs take the
+#: engines' path, and the comparison can only repeat the scenario's own run-to-run timing.
 CASES = [
-    pytest.param(f, i, id=label_of(f, c.case))
+    pytest.param(
+        f,
+        i,
+        id=label_of(f, c.case),
+        marks=() if label_of(f, c.case) in FIRES else (pytest.mark.slow,),
+    )
     for f in FILES
     for i, c in enumerate(load_scenario(f).cases)
-    if ALL or label_of(f, c.case) in FIRES
 ]
 
 

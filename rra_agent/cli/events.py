@@ -6,7 +6,6 @@ import argparse
 import ast
 import re
 import textwrap
-import threading
 import time
 from collections.abc import Iterable
 from typing import Any
@@ -19,7 +18,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import connect_system, engine_status
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
 from rra_agent.bus.why import change_lines
-from rra_agent.cli.common import WIDTH, add_system_argument
+from rra_agent.cli.common import WIDTH, UntilStopped, add_system_argument
 from rra_agent.errors import RraError
 
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
@@ -138,7 +137,7 @@ def run_events(args: argparse.Namespace) -> int:
         for ev in in_time_order(events):
             show(ev)
         return 0
-    done = threading.Event()
+    stops = UntilStopped()
     with connect_system(bus_from_args(args), args.system) as client:
         engine = engine_status(client, 2.0)
         if engine is not None:
@@ -154,33 +153,5 @@ def run_events(args: argparse.Namespace) -> int:
         if not args.json:
             hidden = "" if args.all else " (CV updates hidden: --all shows them)"
             print(f"following system {client.keys.system!r}{hidden}; Ctrl-C to stop", flush=True)
-        hosts: set[str] = set()
-        lock = threading.Lock()
-
-        def on_host(sample: zenoh.Sample) -> None:
-            """The last host agent of the system gone: it stopped, and so does following."""
-            host = str(sample.key_expr).rsplit("/", 1)[-1]
-            with lock:
-                if sample.kind == zenoh.SampleKind.PUT:
-                    hosts.add(host)
-                elif host in hosts:
-                    hosts.discard(host)
-                    if not hosts:
-                        done.set()
-
-        entities = [
-            client.session.declare_subscriber(client.keys.events, on_event),
-            client.session.liveliness().declare_subscriber(
-                client.keys.host_alive_all, on_host, history=True
-            ),
-        ]
-        try:
-            done.wait()
-        except KeyboardInterrupt:
-            return 0
-        finally:
-            for entity in entities:
-                entity.undeclare()
-        if not args.json:
-            print(f"system {client.keys.system!r} stopped: no host agent is left", flush=True)
-    return 0
+        entities: list[Any] = [client.session.declare_subscriber(client.keys.events, on_event)]
+        return stops.follow(client.session, client.keys, entities, args.json)

@@ -24,7 +24,7 @@ from rra_agent.bus.client import BusClient, connect_system, context
 from rra_agent.bus.config import add_bus_arguments, bus_from_args
 from rra_agent.bus.counters import Refused, receive
 from rra_agent.bus.why import clock, value_text
-from rra_agent.cli.common import WIDTH, add_system_argument, cut
+from rra_agent.cli.common import WIDTH, UntilStopped, add_system_argument, cut
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.errors import RraError
 
@@ -108,7 +108,7 @@ def _now(entry: dict[str, Any]) -> m.Measurement | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    done = threading.Event()
+    stops = UntilStopped()
     with connect_system(bus_from_args(args), args.system) as client:
         declared = context(client, 5.0)
         if declared is None:
@@ -116,17 +116,6 @@ def run(args: argparse.Namespace) -> int:
         names = chosen(declared, list(args.names), client.keys.system)
         units = {d["name"]: d.get("unit", "") for d in declared}
         watcher = Watcher(client, names, units, args)
-        hosts: set[str] = set()
-
-        def on_host(sample: zenoh.Sample) -> None:
-            host = str(sample.key_expr).rsplit("/", 1)[-1]
-            if sample.kind == zenoh.SampleKind.PUT:
-                hosts.add(host)
-            elif host in hosts:
-                hosts.discard(host)
-                if not hosts:
-                    done.set()
-
         if not args.json:
             print(f"watching {', '.join(names)} of system {client.keys.system!r}; Ctrl-C to "
                   "stop", flush=True)  # fmt: skip
@@ -138,14 +127,8 @@ def run(args: argparse.Namespace) -> int:
                 msg = _now(entry)
                 if msg is not None:
                     watcher.show(msg, trusted=True)
-            entities.append(session.liveliness().declare_subscriber(
-                client.keys.host_alive_all, on_host, history=True))  # fmt: skip
-            done.wait()
-        except KeyboardInterrupt:
-            return 0
-        finally:
+        except BaseException:
             for entity in entities:
                 entity.undeclare()
-        if not args.json:
-            print(f"system {client.keys.system!r} stopped: no host agent is left", flush=True)
-    return 0
+            raise
+        return stops.follow(session, client.keys, entities, args.json)

@@ -28,7 +28,6 @@ CASES = [
     ("quadcopter/motor_failure.scenario.yaml", "motor_failure::adaptive"),
     ("quadcopter/engine_faults.scenario.yaml", "engine_faults::adaptation_killed"),
     ("object_storing/radio.scenario.yaml", "radio::adaptive"),
-    ("object_storing/max_velocity.scenario.yaml", "max_velocity"),
     ("base_station/link_cut.scenario.yaml", "link_cut::short"),
     # Its battery is a ROS 2 topic: samples the monitor decoded from CDR, recorded decoded.
     ("ros2_rover/power.scenario.yaml", "power::adaptive"),

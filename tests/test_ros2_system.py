@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import shutil
 import signal
-import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -318,15 +317,5 @@ def test_a_python_nodes_ros2_port_is_cdr_on_ros2_and_a_ros2_topic_again(
 
 
 # ---- the example package's scenarios ------------------------------------------------------------
-@pytest.mark.system
-def test_the_ros2_rover_scenarios_pass(tmp_path: Path) -> None:
-    """``rra test scenarios/ros2_rover``: the switch and the way back (power, with and without
-    adaptation) and the bad ROS 2 input (ros2_faults), every expectation met."""
-    out = subprocess.run(
-        [sys.executable, "-m", "rra_agent", "test", str(ROVER), "--out", str(tmp_path / "runs")],
-        capture_output=True, text=True, timeout=400, check=False,
-    )  # fmt: skip
-    assert out.returncode == 0, out.stdout + out.stderr
-    assert "3 passed, 0 failed" in out.stderr
-    assert all(s in out.stdout for s in ("power::adaptive", "power::control", "ros2_faults"))
-    assert "swap(planner_fast" in out.stdout
+# scenarios/ros2_rover/*.scenario.yaml (power with and without adaptation, ros2_faults) are
+# items of this suite themselves (the rra pytest plugin collects every shipped scenario).

@@ -25,6 +25,7 @@ import yaml
 
 from rra_agent.bus import messages as m
 from rra_agent.scenario.model import load_scenario
+from rra_agent.scenario.plugin import shared_run
 from rra_agent.scenario.runner import run_case
 
 pytestmark = pytest.mark.system
@@ -108,11 +109,15 @@ def reflex_events(rec: Any) -> list[m.AdaptationEvent]:
 
 
 @pytest.mark.parametrize(("path", "index"), CASES)
-def test_the_same_decisions_with_and_without_reflexes(path: Path, index: int, tmp_path) -> None:
+def test_the_same_decisions_with_and_without_reflexes(
+    path: Path, index: int, tmp_path: Path, pytestconfig: pytest.Config
+) -> None:
     case = load_scenario(path).cases[index]
     off_pkg = without_reflexes(case.package, tmp_path / "pkg-off")
+    # As shipped (reflexes on): the suite's own run of the case if it had one.
+    on = shared_run(pytestconfig, case.id) or run_case(case, tmp_path / "on")
     runs = {
-        "on": run_case(case, tmp_path / "on"),
+        "on": on,
         "off": run_case(dataclasses.replace(case, package=off_pkg), tmp_path / "off"),
     }
     for name, run in runs.items():

@@ -20,6 +20,7 @@ import pytest
 
 from rra_agent.record.replay import load_edited, open_run, what_if
 from rra_agent.scenario import expectations as x
+from rra_agent.scenario.plugin import shared_run
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
@@ -42,13 +43,18 @@ def rra(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
 
 
 class Runs:
-    """The run folders of the scenario cases recorded in this module (each recorded once)."""
+    """The run folders of the scenario cases recorded in this module (each recorded once; the
+    suite's own run of a shipped case when it had one, `shared_run`)."""
 
-    def __init__(self, base: Path) -> None:
+    def __init__(self, base: Path, config: pytest.Config) -> None:
         self.base = base
+        self.config = config
         self.done: dict[str, Path] = {}
 
     def get(self, scenario: str, case: str) -> Path:
+        shared = shared_run(self.config, case)
+        if shared is not None and (shared.run_dir / "record" / "run.json").exists():
+            self.done.setdefault(case, shared.run_dir)
         if case not in self.done:
             out = rra("test", str(SCENARIOS / scenario), "-k", case, "--out", str(self.base),
                       "--keep")  # fmt: skip
@@ -59,8 +65,8 @@ class Runs:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> Runs:
-    return Runs(tmp_path_factory.mktemp("runs"))
+def runs(tmp_path_factory: pytest.TempPathFactory, pytestconfig: pytest.Config) -> Runs:
+    return Runs(tmp_path_factory.mktemp("runs"), pytestconfig)
 
 
 @pytest.mark.parametrize(("scenario", "case"), CASES, ids=[c for _, c in CASES])

@@ -10,7 +10,9 @@ problem as ``file:line:col``. A scenario with ``slow: true`` is marked ``slow``
 
 An item runs its system with `rra_agent.scenario.runner.run_case` in a run folder under
 ``rra_scenario_runs`` (ini; default: the system temp dir); the folder is removed when the
-scenario passes (unless ``--rra-keep-runs``) and kept when it fails. A failure shows each
+scenario passes (unless ``--rra-keep-runs``) and kept when it fails. With
+``rra_scenario_share = true`` (ini) a passed run is kept whole until the session ends, and a
+test reuses it with `shared_run` instead of running the case again. A failure shows each
 failing expectation as ``scenario-file:line: expectation failed: TEXT`` with what was
 observed, and the paths of the events log and recordings. A node that crashed is named in
 the report with what it raised, and its log is kept (``crashed/<node>.log``, also when the
@@ -49,6 +51,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default="",
         help="folder for the run folders of RRA scenarios (default: the system temp dir)",
     )
+    parser.addini(
+        "rra_scenario_share",
+        type="bool",
+        default=False,
+        help="keep the runs of passed scenarios until the session ends, for tests to reuse "
+        "(`shared_run`)",
+    )
     group = parser.getgroup("rra", "RRA scenarios")
     group.addoption(
         "--rra-keep-runs",
@@ -58,7 +67,29 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+#: The passed runs of this session by case id, kept whole until it ends (``rra_scenario_share``).
+SHARED = pytest.StashKey[dict[str, Any]]()
+
+
+def shared_run(config: pytest.Config, case_id: str) -> Any:
+    """The passed run (`rra_agent.scenario.runner.CaseRun`, its run folder intact) of the
+    shipped scenario case ``case_id`` (``motor_failure::adaptive``) if this session has run it
+    already, else None: a test that needs a run of a shipped case does not run it again."""
+    return config.stash.get(SHARED, {}).get(case_id)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """The shared runs pruned as any passed run is (`rra_agent.scenario.runner.prune`)."""
+    from rra_agent.scenario.runner import prune
+
+    keep = session.config.getoption("rra_keep_runs")
+    for run in session.config.stash.get(SHARED, {}).values():
+        if not keep:
+            prune(run)
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    config.stash[SHARED] = {}
     config.addinivalue_line("markers", "slow: a slow test (deselect with -m 'not slow')")
     config.addinivalue_line("markers", "scenario: an RRA scenario run against a real system")
 
@@ -140,7 +171,9 @@ class ScenarioItem(pytest.Item):
         self.add_report_section("call", "rra scenario", verdict)
         if not run.passed:
             raise ScenarioFailed(run)
-        if not self.config.getoption("rra_keep_runs"):
+        if self.config.getini("rra_scenario_share"):
+            self.config.stash[SHARED][self.case.id] = run  # pruned when the session ends
+        elif not self.config.getoption("rra_keep_runs"):
             prune(run)  # all but its crashed nodes' logs and its verdict
 
     def repr_failure(self, excinfo: pytest.ExceptionInfo[BaseException]) -> Any:  # type: ignore[override]

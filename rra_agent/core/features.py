@@ -885,14 +885,7 @@ def apply_requests(
     """
     ctx = _context(fm, deployment)
     idx = ctx.idx
-    cur: list[Tri] = [x is True for x in ctx.base]
-    for v in _resolve_all(
-        idx, _names(previous, "a run-time selection"), "runtime", "a run-time selection"
-    ):
-        cur[v] = True
-    # The engine passes back what the last call returned: a selection known to be valid
-    # needs no full re-check (which costs time linear in the model on every tick).
-    valid = ctx.known_valid(frozenset(previous)) or not _violations(idx, cur)
+    cur, valid = _starting_selection(ctx, previous)
     rejected: list[tuple[int, str]] = []
     for i, (action, name) in enumerate(requests):
         outcome = _request(ctx, cur, action, name)
@@ -915,6 +908,19 @@ def apply_requests(
     if valid:
         ctx.remember_valid(result)
     return result, rejected
+
+
+def _starting_selection(ctx: _Context, previous: Collection[str]) -> tuple[list[Tri], bool]:
+    """The full selection the requests start from (deployment + ``previous``), and whether it
+    is valid. The engine passes back what the last call returned: a selection known to be
+    valid needs no full re-check (which costs time linear in the model on every tick)."""
+    idx = ctx.idx
+    cur: list[Tri] = [x is True for x in ctx.base]
+    for v in _resolve_all(
+        idx, _names(previous, "a run-time selection"), "runtime", "a run-time selection"
+    ):
+        cur[v] = True
+    return cur, ctx.known_valid(frozenset(previous)) or not _violations(idx, cur)
 
 
 def _canonical(idx: _Index, name: str) -> str:

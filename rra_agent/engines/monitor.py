@@ -157,18 +157,13 @@ class ContextMonitorProcess(EngineProcess):
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
         #: Every host of the model with its reachability measurements (none, unless the
-        #: model declares ``reachable: HOST``), and the hosts whose agent is reachable now.
-        self.reachability: dict[str, list[str]] = {h: [] for h in model_hosts(dep, host)}
-        for meas in dep.package.measurements.measurements:
-            if meas.reachable is not None:
-                self.reachability.setdefault(meas.reachable, []).append(meas.name)
-        self.reachable: dict[str, bool] = {}
-        #: Availability measurements by component, and whether each is available now.
+        #: model declares ``reachable: HOST``) and the availability measurements of each
+        #: component (`_derived`); whether each host is reachable and each is available now.
+        self.reachability: dict[str, list[str]] = {}
         self.availability: dict[str, list[str]] = {}
-        for meas in dep.package.measurements.measurements:
-            if meas.available is not None:
-                self.availability.setdefault(meas.available, []).append(meas.name)
+        self.reachable: dict[str, bool] = {}
         self.available: dict[str, bool] = {}
+        self._derived(dep)
         self.resolution: LeaderWatch | None = None
         #: Hosts the start-up query did not find (not yet known to be cut off: the query
         #: may run before this session has heard of their tokens).

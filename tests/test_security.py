@@ -240,7 +240,8 @@ def test_access_control_covers_every_run_time_variant() -> None:
         KEYS.data("filtered/out"),
         KEYS.inject_all,
     ]
-    assert rules["node:sink/publish"]["key_exprs"] == [KEYS.data("sink/out")]
+    # Its data, and the report of a reflex it fires (its own key only).
+    assert rules["node:sink/publish"]["key_exprs"] == [KEYS.data("sink/out"), KEYS.reflex("sink")]
     assert rules["node:source/alive"]["key_exprs"] == [KEYS.alive(HOST, "source")]
     assert "node:source/subscribe" in rules  # injections only: source has no input
     assert rules["node:source/subscribe"]["key_exprs"] == [KEYS.inject_all]

@@ -46,8 +46,11 @@ SETTLE = 0.5
 #: ... or after the first host agent token from behind them: one more look, in case the
 #: linked router's tokens came in more than one batch.
 CONFIRM = 0.1
-#: How long a liveliness query or a Ping may take to be answered.
+#: How long a liveliness query may take to be answered.
 ANSWER = 1.0
+#: How long the running agent's answer to a Ping (for the refusal's text) is waited for: it
+#: answers at once unless its machine is busy (1 s was too short once, on two loaded cores).
+PING = 2.0
 _ANY = m.Codec[Any](Any)
 _REPLY = m.Codec[m.Reply](m.Reply)
 
@@ -99,7 +102,7 @@ def tokens(session: zenoh.Session, key: str) -> list[str]:
 
 def agent_identity(session: zenoh.Session, keys: Keys, host: str) -> dict[str, Any]:
     """A host agent's answer to a Ping (pid, host, router endpoints); {} if none."""
-    for reply in session.get(keys.host_ctl(host), payload=_ANY.encode(m.Ping()), timeout=ANSWER):
+    for reply in session.get(keys.host_ctl(host), payload=_ANY.encode(m.Ping()), timeout=PING):
         if reply.ok is None:
             continue
         try:

@@ -146,3 +146,33 @@ def test_a_sample_of_the_producer_swapped_out_is_not_delivered_after_the_switch(
     assert core.counters.extra["unselected"] == 1
     session.callbacks[HOT](sample({"n": 4}))
     assert core.node.got[-1] == {"n": 4}
+
+
+def test_a_switch_to_the_hot_standby_and_back_declares_no_subscriber():
+    """The switch runs under the node's lock (a reflex: on the node's own thread): it flips
+    which key is held and declares nothing, so it never waits on Zenoh while Zenoh's threads
+    wait on that lock (a reflex's switch once held the simulator for 160 ms that way)."""
+    from rra_agent.node.runtime import ZenohTransport
+
+    session = FakeSession()
+    declared: list[str] = []
+    declare = session.declare_subscriber
+    session.declare_subscriber = lambda key, cb: (declared.append(key), declare(key, cb))[1]  # type: ignore[method-assign]
+    transport = ZenohTransport(session)  # type: ignore[arg-type]
+    spec = m.NodeSpec(
+        system="t", name="sim", host="h", implementation=f"{__name__}.Sink",
+        ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
+                                 standby=[HOT])},
+    )  # fmt: skip
+    core = NodeCore(spec, Sink, transport)
+    for name, port in core.ports.items():
+        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+    transport.core = core
+    core.start()
+    assert sorted(declared) == sorted([ACTIVE, HOT])
+    transport.rebind("cmd", "subscribe", [HOT], [ACTIVE])  # the switch
+    transport.rebind("cmd", "subscribe", [ACTIVE], [HOT])  # and back
+    assert sorted(declared) == sorted([ACTIVE, HOT])  # nothing declared again
+    session.callbacks[HOT](sample({"n": 1}))  # held again: not delivered
+    session.callbacks[ACTIVE](sample({"n": 2}))
+    assert core.node.got == [{"n": 2}]

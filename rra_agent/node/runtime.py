@@ -103,6 +103,12 @@ class ZenohTransport:
         #: port -> key -> (held?, subscriber): a standby key's subscriber hands its samples
         #: to `NodeCore.hold`, the others to `NodeCore.deliver`.
         self.subscribers: dict[str, dict[str, tuple[bool, Any]]] = {}
+        #: (port, key) -> held?, read by the subscriber's callback at each sample: a switch
+        #: between a key and its hot standby flips these flags and declares nothing (it runs
+        #: under the node's lock, on a reflex in the node's own thread; a declaration there
+        #: waits on Zenoh while Zenoh's threads wait on the lock). A key no longer bound has
+        #: none: what its subscriber still delivers, the node refuses and counts.
+        self.held: dict[tuple[str, str], bool] = {}
         #: Raw subscriptions (`NodeContext.subscribe`), undeclared when the session closes.
         self.raw: list[Any] = []
 
@@ -122,15 +128,14 @@ class ZenohTransport:
         old_subs = self.subscribers.pop(port, {})
         subs: dict[str, tuple[bool, Any]] = {}
         for k in dict.fromkeys([*keys, *held]):
+            self.held[(port, k)] = k in held
             prev = old_subs.pop(k, None)
-            if prev is not None and prev[0] == (k in held):
-                subs[k] = prev  # listening already: no gap, no re-declaration
-                continue
             if prev is not None:
-                prev[1].undeclare()
-            cb = self._on_sample(port, k, k in held)
-            subs[k] = (k in held, self.session.declare_subscriber(k, cb))
-        for _, sub in old_subs.values():
+                subs[k] = (k in held, prev[1])  # listening already: no gap, no declaration
+                continue
+            subs[k] = (k in held, self.session.declare_subscriber(k, self._on_sample(port, k)))
+        for k, (_, sub) in old_subs.items():
+            self.held.pop((port, k), None)
             sub.undeclare()
         self.subscribers[port] = subs
 
@@ -144,6 +149,7 @@ class ZenohTransport:
             sub.undeclare()
         self.publishers.clear()
         self.subscribers.clear()
+        self.held.clear()
         self.raw.clear()
 
     def subscribe(self, key_expr: str, callback) -> None:
@@ -156,15 +162,19 @@ class ZenohTransport:
 
         self.raw.append(self.session.declare_subscriber(key_expr, on_sample))
 
-    def _on_sample(self, port: str, key: str, held: bool = False):
+    def _on_sample(self, port: str, key: str):
         """The callback of the subscription of ``port`` to ``key``: its samples are
-        delivered, or, on a ``held`` (standby) key, handed to `NodeCore.hold`."""
+        delivered, or, while ``key`` is a held (standby) key of ``port``, handed to
+        `NodeCore.hold` (`held`); one still on its way once ``key`` is unbound is refused
+        and counted by `NodeCore.deliver` (``unselected``)."""
         unpack = _STAMP.unpack
+        flags = self.held
 
         def callback(sample: zenoh.Sample) -> None:
             core = self.core
             if core is None:
                 return
+            held = flags.get((port, key), False)
             att = sample.attachment
             stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
             if not held:

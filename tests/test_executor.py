@@ -64,6 +64,26 @@ class FakeActuator:
             if deadlines and s.name in deadlines:
                 self.deadlines[s.name] = deadlines[s.name]
 
+    def replace(
+        self, pairs: list[tuple[NodeSpec, NodeSpec]], deadlines: dict[str, float] | None = None
+    ) -> None:
+        """As the real one: each old node stopped, then its new one started (not if the old
+        one did not stop)."""
+        failed: dict[str, str] = {}
+        for old, new in pairs:
+            try:
+                self.stop([old], deadlines)
+            except StepFailed as e:
+                failed[old.name] = str(e)
+                failed[new.name] = f"not started: {old.name} did not stop"
+                continue
+            try:
+                self.start([new])
+            except StepFailed as e:
+                failed.update(e.nodes or {new.name: str(e)})
+        if failed:
+            raise StepFailed("replace failed", failed)
+
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         self.batches.append(len(batch))
         replies: list[m.Reply] = []

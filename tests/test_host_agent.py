@@ -738,3 +738,79 @@ def test_a_container_s_members_load_only_once_its_token_is_routed(tmp_path):
     assert [s for _, s, _ in seen[2:]] == [State.BACKOFF, State.STARTING]
     agent._on_ready("box")
     assert seen[-1][1] == State.RUNNING
+
+
+# ---- ReplaceNode: a stop-then-start swap in one request --------------------------------------
+def holder_spec(name: str, tmp: Path, stop_seconds: float) -> m.NodeSpec:
+    """A driver of the device ``tmp/device`` (tests/data/hosttest/device.py), noting what it
+    does in ``tmp/witness``."""
+    (tmp / "device").touch()
+    return m.NodeSpec(
+        system=SYSTEM, name=name, host="h1", implementation="device.Holder",
+        params={"device": str(tmp / "device"), "witness": str(tmp / "witness"),
+                "stop_seconds": stop_seconds},
+        ports={"in": m.PortSpec(direction="subscribe", type="X", keys=[K.data(TOPIC[name])])},
+    )  # fmt: skip
+
+
+#: The input topic of each holder (one of its own: its subscriber says it is prepared).
+TOPIC = {"holder_a": "src", "holder_b": "src_b"}
+
+
+def witnessed(tmp: Path) -> list[tuple[float, str, str]]:
+    lines = (tmp / "witness").read_text().splitlines()
+    return [(float(t), name, what) for t, name, what in (x.split(" ", 2) for x in lines)]
+
+
+@pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)
+def test_a_replacement_runs_none_of_its_code_before_the_node_it_replaces_is_gone(
+    agent, procs, tmp_path, request
+):
+    """``ReplaceNode``: holder_a holds a device (released only as its process ends) and takes
+    0.5 s to stop; holder_b takes the device in its constructor. With the fork server
+    holder_b is spawned at once and prepares meanwhile (its STARTING comes before holder_a's
+    STOPPED), yet its constructor runs only after holder_a is gone: it starts the first
+    time. Without a fork server the agent starts it once holder_a is gone."""
+    _, client, watch = agent
+    start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.5))
+    n = len(watch.states)
+    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
+    ok(client.host("h1", replace))
+    running = wait_until(lambda: watch.state("holder_b", "RUNNING", n), 15, "holder_b RUNNING")
+    procs.watch(running.pid)
+    with watch.lock:
+        after = watch.states[n:]
+    assert not [s for s in after if s.node == "holder_b" and s.state in ("BACKOFF", "FATAL")]
+    stopped = next(s for s in after if s.node == "holder_a" and s.state == "STOPPED")
+    assert "exit status 0" in stopped.reason  # its on_stop ran: a stop, not a kill
+    if request.node.callspec.params["agent"] == "fork-server":
+        b_first = next(i for i, s in enumerate(after) if s.node == "holder_b")
+        a_gone = after.index(stopped)
+        assert b_first < a_gone and after[b_first].pid == running.pid, after
+    notes = witnessed(tmp_path)
+    a_stopped = next(t for t, name, what in notes if name == "holder_a" and what == "stopped")
+    b_built = [t for t, name, what in notes if name == "holder_b" and what == "constructed"]
+    assert len(b_built) == 1 and b_built[0] > a_stopped, notes
+    assert ("holder_b", "holds the device") in [(name, what) for _, name, what in notes]
+
+
+def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(
+    agent, procs, tmp_path
+):
+    """holder_b, gated behind holder_a's 2 s stop, is stopped once prepared (its subscriber
+    is declared): it ends cleanly (exit status 0: it left its gate and closed its session)
+    and its constructor never ran; holder_a stops as asked."""
+    _, client, watch = agent
+    start(client, watch, procs, holder_spec("holder_a", tmp_path, 2.0))
+    n = len(watch.states)
+    probe = client.session.declare_publisher(K.data("src_b"))
+    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
+    ok(client.host("h1", replace))
+    gated = wait_until(lambda: watch.state("holder_b", "STARTING", n), 10, "holder_b STARTING")
+    procs.watch(gated.pid)
+    wait_until(lambda: probe.matching_status.matching, 10, "holder_b's subscriber")
+    ok(client.host("h1", m.StopNode(node="holder_b")))
+    stopped = wait_until(lambda: watch.state("holder_b", "STOPPED", n), 10, "holder_b STOPPED")
+    assert "exit status 0" in stopped.reason
+    wait_until(lambda: watch.state("holder_a", "STOPPED", n), 10, "holder_a STOPPED")
+    assert "holder_b" not in [name for _, name, _ in witnessed(tmp_path)]

@@ -555,6 +555,18 @@ class StopNode(Msg, tag="stop_node"):
     deadline: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
 
 
+class ReplaceNode(Msg, tag="replace_node"):
+    """A ``stop-then-start`` swap on one host in one request: stop ``node`` as `StopNode`
+    does (with ``deadline``) and start ``spec`` as `StartNode` does, but only once ``node``
+    is gone. Meanwhile the replacement's process is prepared (forked, its session opened,
+    its data ports declared); none of its code runs before the old node has been reaped."""
+
+    node: str
+    spec: NodeSpec
+    fence: Fence | None = None
+    deadline: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
+
+
 class UpdateSpec(Msg, tag="update_spec"):
     """These nodes' params/ports/active flag changed at run time: restart them with these
     specs from now on (the running processes are left alone)."""
@@ -592,7 +604,7 @@ class CommitModels(Msg, tag="commit_models"):
 
 
 HostRequest = (
-    StartNode | StopNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
+    StartNode | StopNode | ReplaceNode | UpdateSpec | SignalNode | ListNodes | Ping | Stats | Claim
     | PrepareModels | CommitModels
 )
 

@@ -217,8 +217,7 @@ class ZenohActuator:
             except (StepFailed, NoReply) as e:
                 failed[spec.name] = str(e)
                 continue
-            already = isinstance(result, dict) and result.get("already")
-            if not (already and result.get("state") == "RUNNING"):
+            if not _running_already(result):
                 waiting.append(spec)
         failed.update(
             self._wait(
@@ -282,6 +281,92 @@ class ZenohActuator:
         if failed:
             first = next(iter(failed.items()))
             raise StepFailed(f"stop {first[0]}: {first[1]}", failed)
+
+    def replace(
+        self,
+        pairs: list[tuple[m.NodeSpec, m.NodeSpec]],
+        deadlines: Mapping[str, float] | None = None,
+    ) -> None:
+        """Stop each ``(old, new)`` pair's old node and start its new one once the old is
+        gone: one `ReplaceNode` to their host agent where both run on one host (the new
+        process prepares while the old stops), else `stop` then `start`. `StepFailed`
+        naming the old nodes that did not stop and the new ones that did not start (a new
+        one whose old one did not stop is not started, and is stopped)."""
+        deadlines = deadlines or {}
+        local = [(o, n) for o, n in pairs if o.host == n.host and self.reachable(o.host)]
+        failed = self._replace_apart([p for p in pairs if p not in local], deadlines)
+        trace.mark("engine:replace", ",".join(n.name for _, n in local))
+        mark = self._mark()
+        sent: list[tuple[m.NodeSpec, m.NodeSpec]] = []
+        running: set[str] = set()  # new nodes that ran already (as they are)
+        for old, new in local:
+            req = m.ReplaceNode(node=old.name, spec=new, deadline=deadlines.get(old.name))
+            try:
+                result = self._host(new, req, "replace")
+            except (StepFailed, NoReply) as e:
+                failed[old.name] = failed[new.name] = str(e)
+                continue
+            if _running_already(result):
+                running.add(new.name)
+            sent.append((old, new))
+        failed.update(self._wait_replaced(sent, mark, running))
+        if failed:
+            self._abandon([n for o, n in sent if o.name in failed and n.name not in failed])
+            for o, n in sent:
+                if o.name in failed:
+                    failed.setdefault(n.name, f"not started: {o.name} did not stop")
+            first = next(iter(failed.items()))
+            raise StepFailed(f"replace {first[0]}: {first[1]}", failed)
+
+    def _wait_replaced(
+        self, sent: list[tuple[m.NodeSpec, m.NodeSpec]], mark: int, running: set[str]
+    ) -> dict[str, str]:
+        """Wait for each old node's end, then for each new one's readiness (but those
+        ``running`` already)."""
+        failed = self._wait(
+            [o.name for o, _ in sent],
+            mark,
+            done=lambda n, evs: any(e.state in TERMINAL for e in evs),
+            failed=lambda evs: None,
+            timeout=self.stop_timeout,
+            what="stop",
+        )
+        trace.mark("engine:stopped", ",".join(o.name for o, _ in sent))
+        failed.update(
+            self._wait(
+                [n.name for o, n in sent if o.name not in failed and n.name not in running],
+                mark,
+                done=lambda n, evs: self._ready(n, evs, mark),
+                failed=lambda evs: next(
+                    (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
+                ),
+                timeout=self.start_timeout,
+                what="start",
+            )
+        )
+        trace.mark("engine:started", ",".join(n.name for _, n in sent))
+        return failed
+
+    def _replace_apart(
+        self, pairs: list[tuple[m.NodeSpec, m.NodeSpec]], deadlines: Mapping[str, float]
+    ) -> dict[str, str]:
+        """`replace` of pairs on two hosts (or an unreachable one): stop, then start."""
+        failed: dict[str, str] = {}
+        if not pairs:
+            return failed
+        try:
+            self.stop([o for o, _ in pairs], deadlines)
+        except StepFailed as e:
+            failed.update(e.nodes or {o.name: str(e) for o, _ in pairs})
+        news = [n for o, n in pairs if o.name not in failed]
+        for o, n in pairs:
+            if o.name in failed:
+                failed[n.name] = f"not started: {o.name} did not stop"
+        try:
+            self.start(news)
+        except StepFailed as e:
+            failed.update(e.nodes or {n.name: str(e) for n in news})
+        return failed
 
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         """All requests in flight at once (each get returns at once; then drain the replies),
@@ -412,3 +497,12 @@ class ZenohActuator:
                     timeout=self.request_timeout,
                 )
             )
+
+
+def _running_already(result: Any) -> bool:
+    """A start's reply says the node was running already (it is left as it is)."""
+    return (
+        isinstance(result, dict)
+        and bool(result.get("already"))
+        and result.get("state") == "RUNNING"
+    )

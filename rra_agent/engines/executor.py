@@ -93,6 +93,17 @@ class Actuator(Protocol):
         once) instead of its grace periods."""
         ...
 
+    def replace(
+        self,
+        pairs: list[tuple[NodeSpec, NodeSpec]],
+        deadlines: Mapping[str, float] | None = None,
+    ) -> None:
+        """Stop each pair's old node, as `stop` does, and start its new one once the old
+        one is gone, as `start` does; raise StepFailed naming the old nodes that did not
+        stop and the new ones that did not start (a new one whose old one did not stop is
+        not started)."""
+        ...
+
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
         """Send every request of the batch at once; one reply per request, in order.
 
@@ -544,13 +555,7 @@ class Executor:
             tx.records.append(StepRecord("select", ",".join(hot), 0.0, True))
         cold = [w for w in cold if tx.ok(w.unit)]
         if cold:
-            self._stop(tx, [(w.old, w.unit) for w in cold], self.replacement.stop_deadline)
-            news = [
-                (msgspec.structs.replace(w.new, state=cold_states.get(w.new.name)), w.unit)
-                for w in cold
-                if tx.ok(w.unit)
-            ]
-            self._start(tx, news)
+            self._replace(tx, cold, cold_states)
             if any(tx.ok(w.unit) for w in cold):
                 self._switched = self.clock()
         warm = [w for w in warm if tx.ok(w.unit)]
@@ -753,6 +758,41 @@ class Executor:
         self.actuator.start([spec])
         self.running[spec.name] = spec
 
+    def _replace(self, tx: Transaction, cold: list[_Swap], states: Mapping[str, Any]) -> None:
+        """The ``stop-then-start`` swaps: each old node stopped and its new one (with the
+        state exported from the old) started once it is gone; recorded and undone as a
+        stop then a start (a failed start brings the old node back)."""
+        pairs = [
+            (w.old, msgspec.structs.replace(w.new, state=states.get(w.new.name)), w.unit)
+            for w in cold
+        ]
+        t0 = self.clock()
+        try:
+            self.actuator.replace([(o, n) for o, n, _ in pairs], self.replacement.stop_deadline)
+            failed: dict[str, str] = {}
+        except StepFailed as e:
+            every = {s.name: str(e) for o, n, _ in pairs for s in (o, n)}
+            failed = e.nodes if e.nodes is not None else every
+        seconds = self.clock() - t0
+        olds = {o.name for o, _, _ in pairs}
+        _record(tx, "stop", [o for o, _, _ in pairs], _only(failed, olds), seconds)
+        _record(tx, "start", [n for _, n, _ in pairs], _only(failed, set(failed) - olds), seconds)
+        for old, new, unit in pairs:  # what was done first, so a failed unit undoes it all
+            for spec, action, done, undo in (
+                (old, "stop", self._stopped, self._unstop),
+                (new, "start", self._started, self._unstart),
+            ):
+                if spec.name in failed:
+                    break
+                done(spec)
+                tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
+        for old, new, unit in pairs:
+            for spec, action in ((old, "stop"), (new, "start")):
+                if spec.name in failed:
+                    why = failed[spec.name]
+                    tx.fail(unit, f"{action} {spec.name}: {why}", {spec.name: why})
+                    break
+
     def _batch(
         self,
         tx: Transaction,
@@ -826,6 +866,10 @@ def _record(
         tx.records.append(StepRecord(action, _names(done), seconds))
     for name, why in failed.items():
         tx.records.append(StepRecord(action, name, seconds, False, why))
+
+
+def _only(failed: Mapping[str, str], names: set[str]) -> dict[str, str]:
+    return {k: v for k, v in failed.items() if k in names}
 
 
 def _launches(s: PlanStep) -> str | None:

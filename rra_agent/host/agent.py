@@ -157,6 +157,11 @@ class HostAgent:
         self.stopping = False
         #: A host other than the first learns the run's Rerun configuration from the engine.
         self._rerun_known = hub
+        #: `ReplaceNode`s under way: the node stopping -> its replacement, which starts
+        #: once it is gone (spawned gated, or not yet spawned if in ``_deferred``).
+        self._after: dict[str, m.NodeSpec] = {}
+        self._deferred: set[str] = set()
+        self.local.gate_for = lambda spec: any(s.name == spec.name for s in self._after.values())
         self.log_dir = Path(log_dir)
 
     def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
@@ -176,6 +181,8 @@ class HostAgent:
     def _on_transition(self, t: Transition) -> None:
         p = self.supervisor.procs.get(t.node) or self.members.members.get(t.node)
         trace.mark(f"agent:{t.state.value}", t.node)
+        if t.node in self._after and t.state not in LIVE:
+            self._release(t.node)
         if t.node in self.catalog.containers and t.node in self.supervisor.procs:
             self._container_transition(t)
         msg = m.NodeState(
@@ -414,6 +421,8 @@ class HostAgent:
                 return self._start(spec)
             case m.StopNode(node=name, deadline=deadline):
                 return self._stop(name, deadline)
+            case m.ReplaceNode(node=name, spec=spec, deadline=deadline):
+                return self._replace(name, spec, deadline)
             case m.UpdateSpec(specs=specs):
                 for spec in specs:
                     if spec.name in self.members.members:
@@ -470,6 +479,9 @@ class HostAgent:
         """The request with every spec derived from the model (`Refused` if it may not)."""
         match req:
             case m.StartNode(spec=spec):
+                return msgspec.structs.replace(req, spec=self._admit_spec(spec))
+            case m.ReplaceNode(node=name, spec=spec):
+                check_name(name)
                 return msgspec.structs.replace(req, spec=self._admit_spec(spec))
             case m.UpdateSpec(specs=specs):
                 return msgspec.structs.replace(req, specs=[self._admit_spec(s) for s in specs])
@@ -555,6 +567,54 @@ class HostAgent:
         self.supervisor.stop(name, self.clock(), deadline)
         self._tick_due()
         return m.Ok(result={"state": p.state.value})
+
+    def _replace(self, old: str, spec: m.NodeSpec, deadline: float | None) -> m.Reply:
+        """`ReplaceNode`: stop ``old`` and start ``spec`` once it is gone. A node the fork
+        server can start gated is spawned at once and prepares meanwhile; any other waits
+        here until ``old`` is gone (`_release`)."""
+        if self.stopping:
+            return m.Err(message=f"host {self.host} is shutting down", code="busy")
+        stopped = self._stop(old, deadline)
+        if isinstance(stopped, m.Err):
+            return stopped
+        if not self._live(old):
+            return self._start(spec)
+        self._after[old] = spec
+        gateable = spec.name != old and self.catalog.container_of(spec.name) is None
+        if not (gateable and self.local.can_gate(spec)):
+            self._deferred.add(old)
+            return m.Ok(result={"state": State.STOPPED.value, "after": old})
+        started = self._start(spec)  # gated: `self.local.gate_for` says so
+        if isinstance(started, m.Err):
+            self._after.pop(old, None)
+        return started
+
+    def _live(self, name: str) -> bool:
+        """Whether ``name``'s process (or container member) exists."""
+        mb = self.members.members.get(name)
+        if mb is not None:
+            return mb.state in LIVE
+        p = self.supervisor.procs.get(name)
+        return p is not None and p.state in LIVE
+
+    def _release(self, old: str) -> None:
+        """``old`` is gone: its replacement's code may run (its gate opens), or the
+        replacement is started now if it was not spawned yet."""
+        spec = self._after.pop(old)
+        if old not in self._deferred:
+            self.local.open_gate(spec.name)
+            return
+        self._deferred.discard(old)
+
+        def start() -> None:
+            if self.stopping:
+                return
+            reply = self._start(spec)
+            if isinstance(reply, m.Err):
+                self.event("replace", f"{spec.name} not started after {old}: {reply.message}",
+                           level="warning", nodes=(spec.name,))  # fmt: skip
+
+        self.loop.post(start)
 
     def _tick_due(self) -> None:
         """Tick when the supervisor's next deadline ends (a stop deadline can be shorter

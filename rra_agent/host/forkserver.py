@@ -35,8 +35,10 @@ the engines need.
 Protocol on the zygote's stdin/stdout, one JSON object per line:
 
 - host -> zygote: ``{"id": n, "spec": <NodeSpec>, "env": {...}, "log": "<path>",
-  "argv": [...] | null, "cwd": "<dir>" | null, "main": "<module>" | null}`` (``argv`` null:
-  a Python node; ``main`` set: ``argv`` is ``python -m <module> ...``, run in the fork);
+  "argv": [...] | null, "cwd": "<dir>" | null, "main": "<module>" | null, "gate": bool}``
+  (``argv`` null: a Python node; ``main`` set: ``argv`` is ``python -m <module> ...``, run
+  in the fork; ``gate``: a Python node that prepares, then waits for its gate to open before
+  any of its code runs, `rra_agent.node.gate`);
 - zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to;
   for a ``main`` request the branch writes it, on the same pipe).
 
@@ -72,6 +74,7 @@ import msgspec
 
 from rra_agent import trace
 from rra_agent.bus.messages import NodeSpec
+from rra_agent.node import gate
 
 #: What every Python node needs: imported once, in the zygote. Also what a node imports as
 #: it starts (``run_node``) or may import in its hooks (Rerun logging: the module, not
@@ -95,6 +98,11 @@ EXIT_SETUP = 71
 #: Spare node processes kept forked, adopted and waiting for a request: a start then costs
 #: neither a fork nor the wait for the adoption (measured ~7 ms of a 20 ms cold start).
 SPARES = int(os.environ.get("RRA_SPARE_NODES", "1"))
+#: Seconds after a start before the next spare is forked: forking it, its adoption and its
+#: session's opening take CPU (and the router's) exactly while the node just started sets up
+#: and a swap's old node is reaped; on two cores that made a ``stop-then-start`` swap ~3 ms
+#: slower. A request that finds no spare meanwhile forks one for itself.
+SPARE_DELAY = float(os.environ.get("RRA_SPARE_DELAY", "0.25"))
 #: Seconds without a request after which the branch (`_Branch`) is retired; 0 (the default):
 #: never. Retiring saves ~9 MiB, but the next engine start forks and warms a new branch, and
 #: that warm-up (~0.5 s of CPU) lands exactly when a killed engine is replaced: on two cores
@@ -235,6 +243,7 @@ def serve(
     """The zygote's main loop (``python -m rra_agent.host.forkserver HOST_PID [--main JSON]...
     [--spare-bus JSON] [MODULE ...]``). ``spare_bus``: the bus configuration every node of
     this host has (none with per-node identities): each spare opens its session ahead."""
+    gate.block()  # every fork starts with the gate's signal blocked (`rra_agent.node.gate`)
     _preload((*PRELOAD, *preload))
     with contextlib.suppress(Exception):
         _warm_sdk()
@@ -269,11 +278,15 @@ def _serve_requests(
     goes to ``branch`` if there is one, which is retired once it has idled `BRANCH_IDLE`."""
     held = [branch.pipe] if branch is not None and branch.pipe is not None else []
     buffer = b""
+    refill = 0.0  # when the next spare may be forked (`SPARE_DELAY` after a start)
     while True:
+        now = time.monotonic()
         with contextlib.suppress(OSError):
-            while len(spares) < wanted:
+            while len(spares) < wanted and now >= refill:
                 spares.append(_spare([requests, out], host_pid, spares, held, preopen))
-        due = branch.due(time.monotonic()) if branch is not None else None
+        due = branch.due(now) if branch is not None else None
+        if len(spares) < wanted:
+            due = max(0.0, min(due if due is not None else refill - now, refill - now))
         if not select.select([requests], [], [], due)[0]:
             if branch is not None and branch.tick(time.monotonic()):
                 held[:] = []
@@ -292,6 +305,7 @@ def _serve_requests(
                 held[:] = [branch.pipe] if branch.pipe is not None else []
             else:
                 _start(request, line, spares, out, [requests, out], host_pid, held, preopen)
+                refill = time.monotonic() + SPARE_DELAY
 
 
 class _Branch:
@@ -523,6 +537,9 @@ def _node(request: dict[str, Any]) -> None:
     code = EXIT_SETUP
     try:
         trace.mark("node:request", request["spec"]["name"])
+        gated = bool(request.get("gate"))
+        if not gated:
+            gate.unblock()
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         _redirect(request["log"])
         spec = msgspec.convert(request["spec"], NodeSpec)
@@ -544,7 +561,7 @@ def _node(request: dict[str, Any]) -> None:
         else:
             from rra_agent.node.process import run_node
 
-            code = run_node(spec)
+            code = run_node(spec, gate=gate.wait if gated else None)
     except SystemExit as e:  # sys.exit in the node's code: its status, as Python's own
         code = _status(e.code)
     except BaseException:  # the node must never fall back into the zygote's loop
@@ -688,10 +705,12 @@ class ForkServer:
         argv: list[str] | None = None,
         cwd: str | None = None,
         main: str | None = None,
+        gate: bool = False,
         timeout: float = 5.0,
     ) -> int:
         """Start a node; its pid. ``main``: ``argv`` is ``python -m main ...``, run in the
-        fork rather than ``exec``ed (the zygote must have imported ``main``). Raises
+        fork rather than ``exec``ed (the zygote must have imported ``main``). ``gate``: a
+        Python node that waits for `rra_agent.node.gate.open_gate` before its code runs. Raises
         `ForkServerError` if the zygote is gone or does not answer within ``timeout`` (then
         it is killed: a new one starts next time)."""
         if self.dead:
@@ -705,6 +724,7 @@ class ForkServer:
             "argv": argv,
             "cwd": cwd,
             "main": main,
+            "gate": gate,
         }
         try:
             self._in.write(json.dumps(request).encode() + b"\n")

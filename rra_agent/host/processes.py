@@ -38,6 +38,7 @@ from pathlib import Path
 
 import msgspec
 
+from rra_agent import trace
 from rra_agent.bus import failure
 from rra_agent.bus import heartbeat as hb
 from rra_agent.bus.config import ENV_VAR as BUS_ENV
@@ -52,7 +53,8 @@ from rra_agent.host.forkserver import (
     die_with_parent,
     python_module,
 )
-from rra_agent.node.process import SPEC_ENV
+from rra_agent.node import gate
+from rra_agent.node.process import CONTAINER, SPEC_ENV
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
 Prober = Callable[[str, int, float], None]
@@ -130,6 +132,11 @@ class LocalHost:
         #: per-node identity): the fork server's spares open their sessions with it ahead
         #: (``RRA_SPARE_SESSION=0``: not).
         self.spare_bus: BusConfig | None = None
+        #: Whether a node is to start gated (`rra_agent.node.gate`): the host agent says so
+        #: for the replacement of a node still stopping.
+        self.gate_for: Callable[[NodeSpec], bool] = lambda spec: False
+        #: Gated nodes whose gate is not open yet: pid -> node name.
+        self.gated: dict[int, str] = {}
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         #: Live node processes: pid -> node name.
@@ -172,13 +179,35 @@ class LocalHost:
             argv = node_command(spec) if external else None
             cwd = spec.implementation.cwd if external else None  # type: ignore[union-attr]
             main = python_module(argv) if argv in self.forked else None
-            pid = self._zygote().spawn(spec, env, str(log_path), argv=argv, cwd=cwd, main=main)
+            gated = self.can_gate(spec) and self.gate_for(spec)
+            pid = self._zygote().spawn(
+                spec, env, str(log_path), argv=argv, cwd=cwd, main=main, gate=gated
+            )
+            if gated:
+                self.gated[pid] = spec.name
         else:
             pid = self._exec(spec, env, log_path)
         self.names[pid] = spec.name
         if external:
             self._commands[pid] = offset
         return pid
+
+    def can_gate(self, spec: NodeSpec) -> bool:
+        """Whether ``spec`` can start gated: a Python node of the Node SDK forked by the fork
+        server (not a command, a container or a ROS 2 executable, which run on their own)."""
+        return (
+            self._fork_server_wanted
+            and isinstance(spec.implementation, str)
+            and spec.implementation != CONTAINER
+            and not (spec.ros2 is not None and spec.ros2.executable)
+        )
+
+    def open_gate(self, name: str) -> None:
+        """Let the gated node ``name`` run its code (nothing if it is not waiting)."""
+        for pid in [p for p, n in self.gated.items() if n == name]:
+            del self.gated[pid]
+            trace.mark("agent:gate", name)
+            gate.open_gate(pid)
 
     def log_path(self, name: str) -> Path:
         """Where a node's output goes (its traceback, if it fails)."""
@@ -227,6 +256,7 @@ class LocalHost:
             self.zygote = None
             return
         name = self.names.pop(pid, None)
+        self.gated.pop(pid, None)
         proc = self._popen.pop(pid, None)
         if proc is not None:
             proc.returncode = status

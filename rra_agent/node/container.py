@@ -241,7 +241,7 @@ class ContainerRuntime:
                 queryable.undeclare()
             transport.close()
             return self._load_failed(spec, e)
-        transport.core = core
+        transport.start_delivery(core)
         token = self.session.liveliness().declare_token(self.keys.alive(spec.host, spec.name))
         rate = core.rate_hz
         first = time.time() + (1.0 / rate if rate > 0 else 0.0)

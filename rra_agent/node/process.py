@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
@@ -23,6 +24,9 @@ from rra_agent.node.loading import load_node_class
 
 # ---- the process entry point ----------------------------------------------------------
 SPEC_ENV = "RRA_NODE_SPEC"
+
+#: A start gate: called with "was the node told to stop?", True once the node may start.
+Gate = Callable[[Callable[[], bool]], bool]
 
 
 #: Exit status of a node whose spec or implementation is unusable (not restarted at once).
@@ -41,7 +45,7 @@ def read_spec(path: str | None) -> NodeSpec:
 CONTAINER = "rra_agent.node.container"
 
 
-def run_node(spec: NodeSpec) -> int:
+def run_node(spec: NodeSpec, gate: Gate | None = None) -> int:
     """Run a node (Python implementation) until it is told to stop; its exit status.
 
     The bus configuration comes from ``RRA_BUS_CONFIG``. Used by ``python -m rra_agent.node``
@@ -49,10 +53,12 @@ def run_node(spec: NodeSpec) -> int:
     constructor, ``import_state``, ``on_start``, or a ``sys.exit`` with a non-zero status) is
     printed to its log with its traceback and reported to its host agent
     (`rra_agent.bus.failure`): exit status 2 when the spec or implementation is unusable, 1
-    for any other exception.
+    for any other exception. ``gate``: a replacement's start gate (`rra_agent.node.gate`):
+    called once the session is open and the data ports are declared, it returns when the
+    node's code may run (False: stop without running it).
     """
     try:
-        return _run_node(spec)
+        return _run_node(spec, gate)
     except SystemExit as e:
         if e.code not in (None, 0):
             _crashed(spec, e, "run")
@@ -78,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
 EXIT_FAILED = 1
 
 
-def _run_node(spec: NodeSpec) -> int:
+def _run_node(spec: NodeSpec, gate: Gate | None = None) -> int:
     from rra_agent.bus.config import BusConfig
 
     if spec.implementation == CONTAINER:
@@ -102,7 +108,7 @@ def _run_node(spec: NodeSpec) -> int:
 
     from rra_agent.node.runtime import NodeRuntime
 
-    runtime = NodeRuntime(spec, node_cls, bus)
+    runtime = NodeRuntime(spec, node_cls, bus, gate=gate)
     try:
         return runtime.run()
     finally:

@@ -405,6 +405,10 @@ class Ros2Transport:
     def subscribe(self, key_expr: str, callback: Any) -> None:
         raise NodeError("a ROS 2 executable has no raw subscriptions")
 
+    def start_delivery(self, core: NodeCore) -> None:
+        """Nothing is delivered through here: the executable takes its topics itself."""
+        self.core = core
+
 
 class _Speaker(Node):
     """What the node core runs for a ROS 2 executable: its hooks call `Executable`."""

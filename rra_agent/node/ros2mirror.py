@@ -93,6 +93,9 @@ class Ros2Mirror:
     def core(self, core: Any) -> None:
         self.inner.core = core
 
+    def start_delivery(self, core: Any) -> None:
+        self.inner.start_delivery(core)
+
     @property
     def session(self) -> zenoh.Session:
         return self.inner.session

@@ -30,6 +30,7 @@ import signal
 import socket
 import struct
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -44,7 +45,7 @@ from rra_agent.bus.heartbeat import Heartbeat
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.session import CONTROL_QOS, beat_period, data_publisher, open_session
 from rra_agent.node.api import Node
-from rra_agent.node.core import NodeCore
+from rra_agent.node.core import REPLAY_MAX_AGE, NodeCore
 
 _CTL = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
@@ -96,8 +97,11 @@ def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:
 class ZenohTransport:
     """Binds a node's ports to key expressions and rebinds them at run time."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(
+        self, session: zenoh.Session, monotonic: Callable[[], float] = time.monotonic
+    ) -> None:
         self.session = session
+        self.monotonic = monotonic
         self.core: NodeCore | None = None
         self.publishers: dict[str, zenoh.Publisher] = {}
         #: port -> key -> (held?, subscriber): a standby key's subscriber hands its samples
@@ -111,6 +115,41 @@ class ZenohTransport:
         self.held: dict[tuple[str, str], bool] = {}
         #: Raw subscriptions (`NodeContext.subscribe`), undeclared when the session closes.
         self.raw: list[Any] = []
+        #: Until the node's code has started (`start_delivery`): the newest sample of each
+        #: (port, key) that came meanwhile, as (payload, stamp, arrival on the monotonic
+        #: clock); None once delivering.
+        self._early: dict[tuple[str, str], tuple[bytes, float | None, float]] | None = {}
+        self._early_lock = threading.Lock()
+
+    def start_delivery(self, core: NodeCore) -> None:
+        """Deliver to ``core`` from now on, after the newest sample of each key that came
+        while the node was starting (if younger than `REPLAY_MAX_AGE`), as a subscription
+        queue of depth one would: a replacement started between two samples of a 500 Hz
+        topic acts on the one it missed, not on the next. Under the node's lock, so that a
+        newer sample is delivered after them."""
+        with self._early_lock, core.lock:
+            early, self._early = self._early or {}, None
+            self.core = core
+            now = self.monotonic()
+            for (port, key), (payload, stamp, t) in early.items():
+                if now - t <= REPLAY_MAX_AGE and (port, key) in self.held:
+                    self._hand(core, port, key, payload, stamp)
+
+    def _hand(
+        self, core: NodeCore, port: str, key: str, payload: bytes, stamp: float | None
+    ) -> None:
+        if not self.held.get((port, key), False):
+            core.deliver(port, payload, stamp, key)
+        else:
+            core.hold(port, key, payload, stamp)
+
+    def _keep_early(self, port: str, key: str, payload: bytes, stamp: float | None) -> bool:
+        """Keep a sample that came before the node's code started; False: it has started."""
+        with self._early_lock:
+            if self._early is None:
+                return False
+            self._early[(port, key)] = (payload, stamp, self.monotonic())
+            return True
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
         self.publishers[port].put(payload, attachment=_STAMP.pack(stamp))
@@ -171,13 +210,16 @@ class ZenohTransport:
         flags = self.held
 
         def callback(sample: zenoh.Sample) -> None:
-            core = self.core
-            if core is None:
-                return
-            held = flags.get((port, key), False)
             att = sample.attachment
             stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
-            if not held:
+            core = self.core
+            if core is None:
+                if self._keep_early(port, key, sample.payload.to_bytes(), stamp):
+                    return
+                core = self.core
+                if core is None:  # closed
+                    return
+            if not flags.get((port, key), False):
                 core.deliver(port, sample.payload.to_bytes(), stamp, key)
             else:
                 core.hold(port, key, sample.payload.to_bytes(), stamp)
@@ -188,8 +230,18 @@ class ZenohTransport:
 class NodeRuntime:
     """One node process on the bus."""
 
-    def __init__(self, spec: m.NodeSpec, node_cls: type[Node], bus: BusConfig) -> None:
+    def __init__(
+        self,
+        spec: m.NodeSpec,
+        node_cls: type[Node],
+        bus: BusConfig,
+        *,
+        gate: Callable[[Callable[[], bool]], bool] | None = None,
+    ) -> None:
         self.spec = spec
+        #: A replacement's start gate (`rra_agent.node.gate`): nothing of the node's code
+        #: runs before it opens.
+        self.gate = gate
         self.node_cls = node_cls
         self.bus = bus
         self.keys = Keys(spec.system)
@@ -218,11 +270,15 @@ class NodeRuntime:
         core: NodeCore | None = None
         try:
             transport = self.make_transport(session)
+            # The data ports first: declared before the node's code runs (the core delivers
+            # nothing until `on_start` has returned), so that a gated start has them ready.
+            for name, port in self.spec.ports.items():
+                transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+            if self.gate is not None and not self._pass_gate():
+                return 0
             core = self.make_core(transport)
             self.core = core
             core.on_reflex = reflex_reporter(session, self.keys.reflex(self.spec.name))
-            for name, port in core.ports.items():
-                transport.rebind(name, port.direction, list(port.keys), list(port.standby))
             queryable = session.declare_queryable(
                 self.keys.node_ctl(self.spec.name), self._on_query(core)
             )
@@ -230,8 +286,8 @@ class NodeRuntime:
             core.start()
             trace.mark("node:on_start", self.spec.name)
             # Only now: a sample delivered before on_start would meet a half-set-up node
-            # (samples arriving earlier are dropped, as if they had come before the ports).
-            transport.core = core
+            # (of those that came earlier, the newest of each key follows at once).
+            transport.start_delivery(core)
             token = session.liveliness().declare_token(
                 self.keys.alive(self.spec.host, self.spec.name)
             )
@@ -248,6 +304,14 @@ class NodeRuntime:
             self.release()
             session.close()
             signal.set_wakeup_fd(-1)
+
+    def _pass_gate(self) -> bool:
+        """Wait for the start gate; False if the node was told to stop meanwhile."""
+        trace.mark("node:prepared", self.spec.name)
+        assert self.gate is not None
+        passed = self.gate(lambda: self._signalled)
+        trace.mark("node:gate", self.spec.name)
+        return passed
 
     # ---- what a runtime of another kind (`rra_agent.node.ros2`) changes ------------------
     def make_transport(self, session: zenoh.Session) -> Any:

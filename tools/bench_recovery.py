@@ -109,12 +109,18 @@ PHASES = {
     "stop-then-start": [
         *_ENGINES,
         ("connect (rewire, export state)", "engine:replied"),
-        ("stop the old node", "engine:stopped"),
-        ("start requested -> a spare has it", "node:request"),
-        ("request -> session open", "node:session"),
-        ("declarations, on_start, token", "node:token"),
-        ("ready seen by the engine", "engine:started"),
+        ("replace request -> old node killed", "agent:STOPPING"),
+        ("its exit reaped (gate opened)", "agent:STOPPED"),
+        ("gate seen by the new node", "node:gate"),
+        ("import_state, on_start, token", "node:token"),
         *_SIM,
+    ],
+}
+#: Phases that run beside those above: (label, the mark that starts it, the one that ends it).
+MEANWHILE = {
+    "stop-then-start": [
+        ("(meanwhile) the spare prepares: session, ports", "node:request", "node:prepared"),
+        ("(meanwhile) ready seen by the engine", "node:token", "engine:started"),
     ],
 }
 
@@ -171,6 +177,12 @@ def phases(path: Path, strategy: str) -> dict[str, float]:
             break
         out[label] = float(lines[j]["t"]) - t
         t, i = float(lines[j]["t"]), j
+    start = next(k for k, x in enumerate(lines) if x["what"] == "sim:fault")
+    for label, first, last in MEANWHILE.get(strategy, []):
+        a = next((x for x in lines[start:] if x["what"] == first), None)
+        b = next((x for x in lines[start:] if x["what"] == last), None)
+        if a is not None and b is not None:
+            out[label] = float(b["t"]) - float(a["t"])
     return out
 
 
@@ -479,7 +491,8 @@ def print_phases(breakdown: dict[str, dict[str, list[float]]]) -> None:
     print("where the time goes: median ms per phase (cross-process trace, RRA_TRACE)")
     rows = []
     middle = [label for ph in PHASES.values() for label, _ in ph if (label, _) not in _SIM]
-    labels = list(dict.fromkeys([*middle, *(label for label, _ in _SIM)]))
+    beside = [label for ph in MEANWHILE.values() for label, _, _ in ph]
+    labels = list(dict.fromkeys([*middle, *(label for label, _ in _SIM), *beside]))
     for label in labels:
         if any(label in breakdown[n] for n in names):
             rows.append([label] + [

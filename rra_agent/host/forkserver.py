@@ -506,8 +506,12 @@ def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> N
         if preopen is not None:
             from rra_agent.bus.config import BusConfig
             from rra_agent.bus.session import preopen as open_ahead
+            from rra_agent.node.runtime import rehearse
 
-            open_ahead(msgspec.json.decode(preopen, type=BusConfig))
+            session = open_ahead(msgspec.json.decode(preopen, type=BusConfig))
+            if session is not None:
+                with contextlib.suppress(Exception):
+                    rehearse(session, str(os.getpid()))
         data = b""
         while not data.endswith(b"\n"):
             chunk = os.read(pipe, 65536)

@@ -227,6 +227,21 @@ class ZenohTransport:
         return callback
 
 
+def rehearse(session: zenoh.Session, tag: str) -> None:
+    """Declare and undeclare, on throwaway keys ``rra/_spare/<tag>/...``, what a node
+    declares as it starts (a subscriber port, a publisher port, its control queryable, its
+    token): a spare does it while it waits, so that the node it becomes pays neither the
+    first declaration's set-up in zenoh-python nor the copy of the pages that path writes
+    (measured beside the running system: 4.6 -> 3.3 ms for a node's declarations)."""
+    base = f"rra/_spare/{tag}"
+    transport = ZenohTransport(session)
+    transport.rebind("in", "subscribe", [f"{base}/in"], [])
+    transport.rebind("out", "publish", [f"{base}/out"])
+    transport.close()
+    session.declare_queryable(f"{base}/ctl", lambda query: None).undeclare()
+    session.liveliness().declare_token(f"{base}/alive").undeclare()
+
+
 class NodeRuntime:
     """One node process on the bus."""
 

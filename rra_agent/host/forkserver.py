@@ -509,8 +509,8 @@ def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> N
             from rra_agent.node.runtime import rehearse
 
             session = open_ahead(msgspec.json.decode(preopen, type=BusConfig))
-            if session is not None:
-                with contextlib.suppress(Exception):
+            if session is not None and not select.select([pipe], [], [], 0)[0]:
+                with contextlib.suppress(Exception):  # no request yet: time to rehearse
                     rehearse(session, str(os.getpid()))
         data = b""
         while not data.endswith(b"\n"):

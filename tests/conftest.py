@@ -1,4 +1,7 @@
-"""Shared fixtures: free loopback ports, a hub session, real processes that never outlive a test."""
+"""Shared fixtures: free loopback ports, a hub session, real processes that never outlive a test.
+
+The adversity options (``--cpu-hog``, ``--hostile``) are the rootdir's conftest.py's: every
+path the suite runs has them."""
 
 from __future__ import annotations
 
@@ -68,18 +71,6 @@ def in_process_only(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(zenoh, "open", no_session)
 
 
-def pytest_addoption(parser: pytest.Parser) -> None:
-    group = parser.getgroup("rra adversity", "run the runtime tests under adverse conditions")
-    group.addoption(
-        "--cpu-hog", action="store_true", help="a busy loop on every core for the whole run"
-    )
-    group.addoption(
-        "--hostile",
-        action="store_true",
-        help="a hostile client (tools/hostile.py) on the bus of every system a test starts",
-    )
-
-
 def stop_process(proc: subprocess.Popen) -> None:
     """SIGINT, then SIGKILL if it has not exited within 10 s."""
     if proc.poll() is None:
@@ -89,17 +80,6 @@ def stop_process(proc: subprocess.Popen) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
-
-
-@pytest.fixture(scope="session", autouse=True)
-def cpu_hog_option(request: pytest.FixtureRequest) -> Iterator[None]:
-    """With ``--cpu-hog``: tools/cpuhog.py spins on every core while the tests run."""
-    if not request.config.getoption("--cpu-hog"):
-        yield
-        return
-    proc = subprocess.Popen([sys.executable, str(ROOT / "tools" / "cpuhog.py")])
-    yield
-    stop_process(proc)
 
 
 @pytest.fixture

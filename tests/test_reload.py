@@ -68,6 +68,10 @@ def engine(client: BusClient, name: str) -> dict:
     return reply.result
 
 
+#: The Adaptation Engine replicas `rra up` starts.
+ADAPTATION = ("adaptation-a", "adaptation-b")
+
+
 class Watch:
     """Every selection and Resolution Engine state on the bus during a test."""
 
@@ -80,14 +84,23 @@ class Watch:
                      s.declare_subscriber(k.state("resolution"), self._state)]  # fmt: skip
 
     def _sel(self, sample: Any) -> None:
-        msg = _SEL.decode(sample.payload.to_bytes())
-        if isinstance(msg, m.Selection):
+        """The Adaptation Engine replicas' selections (``--hostile`` forges others: junk, no
+        fence, the fence of a leader that is none of them)."""
+        try:
+            msg = _SEL.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        if isinstance(msg, m.Selection) and msg.fence and msg.fence.leader in ADAPTATION:
             with self.lock:
                 self.selections.append(msg)
 
     def _state(self, sample: Any) -> None:
+        try:
+            state = _STATE.decode(sample.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
         with self.lock:
-            self.states.append(_STATE.decode(sample.payload.to_bytes()))
+            self.states.append(state)
 
     def close(self) -> None:
         for sub in self.subs:

@@ -192,3 +192,23 @@ def test_planted_failures_in_a_copy_of_an_object_storing_scenario(
     # summary repeats the whole message, so count distinct lines)
     failed = set(re.findall(r"radio\.scenario\.yaml:(\d+): expectation failed", out))
     assert failed == planted_lines
+
+
+@pytest.mark.system
+def test_the_adversity_options_are_the_suite_s_for_every_path_it_runs() -> None:
+    """``pytest --cpu-hog --hostile scenarios/...`` given alone was refused ("unrecognized
+    arguments": the options were tests/conftest.py's, read only for paths under tests/).
+    They are the rootdir's conftest.py's: the scenarios are collected, the header says what
+    is in effect (the hog spins for the session; no hostile client on a scenario's run)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "--cpu-hog", "--hostile", "--collect-only",
+         "scenarios/quadcopter/motor_failure.scenario.yaml"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "rra adversity: --cpu-hog --hostile" in out.stdout
+    assert "not scenario runs" in out.stdout
+    assert "<ScenarioItem control>" in out.stdout

@@ -62,7 +62,7 @@ from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink
 from rra_agent.engines.explain import causes, core_why, reachable_summary, wire_why
 from rra_agent.engines.leaders import LeaderWatch
-from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.engines.models import deploy_bundle
 from rra_agent.errors import RraError, SelectionError
 from rra_agent.package.bundle import ModelBundle
 from rra_agent.record.hooks import AdaptationRecorder, open_writer
@@ -79,7 +79,7 @@ _REPLY = m.Codec[m.Reply](m.Reply)
 _ANY = m.Codec[Any](Any)
 
 
-class AdaptationEngineProcess(EngineProcess):
+class AdaptationEngineProcess(EngineProcess[tuple[Deployment, AdaptationEngine]]):
     role = NAME
 
     def __init__(
@@ -133,9 +133,8 @@ class AdaptationEngineProcess(EngineProcess):
         self.rec: AdaptationRecorder | None = None
         #: The Resolution Engine leader's unavailable implementations, as last received.
         self._unavailable_raw: list[m.Unavailable] = []
-        #: Models prepared for a reload, by digest, and the models the Run-time Resolution
-        #: Engine leader runs (this replica switches to them: `_follow_models`).
-        self._prepared: dict[str, tuple[Deployment, AdaptationEngine]] = {}
+        #: The models the Run-time Resolution Engine leader runs (this replica switches to
+        #: them: `follow_models`).
         self._leader_models = dep.models
 
     # ---- bus (Zenoh thread) ------------------------------------------------------------
@@ -200,7 +199,7 @@ class AdaptationEngineProcess(EngineProcess):
 
     def _resolution_state(self, state: m.EngineState) -> None:
         """The leader's models first (a reload), then what is unavailable."""
-        self._follow_models(state.models)
+        self.follow_models(state.models)
         self._availability(state.unavailable)
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
@@ -219,7 +218,7 @@ class AdaptationEngineProcess(EngineProcess):
         """Resume from the running system before taking part in the election."""
         state = self._ask_state()
         if state is not None:
-            self._follow_models(state.models)
+            self.follow_models(state.models)
             self._adopt(state.selection, state.cv, "resumed from the system's state")
             self._availability(state.unavailable)
             self._set_forced(state.forced)
@@ -295,7 +294,7 @@ class AdaptationEngineProcess(EngineProcess):
         if msg.fence.term != self.election.leader:
             self.refuse("selection from a non-leader", f"selection {msg.seq} of {msg.fence.leader}")
             return
-        if msg.models != self.dep.models and not self._follow_models(msg.models):
+        if msg.models != self.dep.models and not self.follow_models(msg.models):
             return  # models it cannot get: it keeps its own state (refused and counted)
         self._adopt(msg.features, msg.cv, f"selection {msg.seq} of {msg.fence.leader}")
         self.engine.note(core_why(w) for w in msg.why)
@@ -534,7 +533,7 @@ class AdaptationEngineProcess(EngineProcess):
         if self.rec is not None:
             self.rec.lead(leading, self.fence)
         if leading:
-            self._follow_models(self._leader_models)  # never decide under other models
+            self.follow_models(self._leader_models)  # never decide under other models
             self.evaluate(force=True)  # the system learns the new leader's fence at once
 
     def tick(self, now: float) -> None:
@@ -567,44 +566,25 @@ class AdaptationEngineProcess(EngineProcess):
             self.rec.writer.close(end=time.time())
 
     # ---- reload: new models (``rra reload``, docs/recording.md) -------------------------------
-    def prepare(self, bundle: ModelBundle) -> m.Reply:
-        """Load and compile these models, ready to switch to (nothing changes yet)."""
-        try:
-            self._prepared[bundle.digest] = self._load_models(bundle)
-        except RraError as e:
-            return m.Err(message=f"{self.name}: {e}", code="invalid")
-        return m.Ok(result={"models": bundle.digest})
-
-    def _load_models(self, bundle: ModelBundle) -> tuple[Deployment, AdaptationEngine]:
+    def load_models(self, bundle: ModelBundle) -> tuple[Deployment, AdaptationEngine]:
+        """These models and their compiled rules."""
         dep = deploy_bundle(bundle, self.dep)
         if dep.package.adaptation is None:
             raise RraError("the new models have no adaptation model")
         return dep, engine_for(dep.package.features, dep.selection, dep.package.adaptation)
 
-    def _follow_models(self, digest: str) -> bool:
-        """Run the models ``digest`` (the Resolution Engine leader's, or this replica's
-        leader's): at once if prepared, else loaded now. False (refused and counted) when
-        they cannot be had: the replica keeps its own and decides nothing new under them
-        while it does not lead."""
-        if not digest:
-            return True
-        self._leader_models = digest
-        if digest == self.dep.models:
-            return True
-        try:
-            prepared = self._prepared.pop(digest, None)
-            if prepared is None:
-                bundle = find_bundle(digest, self.run_dir, self.session, self.keys)
-                prepared = self._load_models(bundle)
-        except RraError as e:
-            self.refuse("models", f"cannot switch to models {digest}: {e}")
-            return False
-        self.switch_models(*prepared)
-        return True
+    def follow_models(self, digest: str) -> bool:
+        """As every engine (`EngineProcess.follow_models`), remembering them as its leader's:
+        while it cannot switch to them it decides nothing new (and only while it does not
+        lead)."""
+        if digest:
+            self._leader_models = digest
+        return super().follow_models(digest)
 
-    def switch_models(self, dep: Deployment, engine: AdaptationEngine) -> None:
+    def switch_models(self, loaded: tuple[Deployment, AdaptationEngine]) -> None:
         """Continue on new models: the core state carried over (`carry_over`), then an
         evaluation under them at once (the leader publishes it)."""
+        dep, engine = loaded
         previous = self.dep.models
         self.needs = requirements(dep.package.features, dep.package.runtime)
         gone = {(u.component, u.implementation): u.reason for u in self._unavailable_raw}

@@ -9,7 +9,11 @@ Each engine role (``monitor``, ``adaptation``, ``resolution``) may run as severa
 - declares ``node/<replica>/ctl``, the endpoint its host agent probes (``Ping``, ``Stats``);
 - takes part in the role's election (`rra_agent.engines.election`) and is told when it
   starts or stops leading (`on_leadership`);
-- writes its heartbeat from its main loop and sets the ready flag once it is up.
+- writes its heartbeat from its main loop and sets the ready flag once it is up;
+- follows the models its leader runs (a reload, docs/recording.md): `prepare` loads a
+  version beside its own (`PrepareModels`), `follow_models` switches to the version its
+  leader names (prepared, else loaded now), each engine saying how it loads
+  (`load_models`) and switches (`switch_models`).
 
 Status-like requests are answered on the Zenoh thread from a snapshot, so a replica busy
 with a plan still answers probes and ``rra status``; requests that change something run on
@@ -21,7 +25,8 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
-from typing import Any
+from pathlib import Path
+from typing import Any, Generic, TypeVar
 
 import msgspec
 import zenoh
@@ -34,15 +39,21 @@ from rra_agent.bus.loop import MainLoop
 from rra_agent.bus.session import beat_period, open_session
 from rra_agent.deployment import Deployment
 from rra_agent.engines.election import Election
+from rra_agent.engines.models import find_bundle
 from rra_agent.engines.ros2 import EngineRos2, EventMirror, engine_ros2
+from rra_agent.errors import RraError
+from rra_agent.package.bundle import ModelBundle
 
 _REQ = m.Codec[m.EngineRequest](m.EngineRequest)
 _NODE_REQ = m.Codec[m.NodeRequest](m.NodeRequest)
 _REPLY = m.Codec[m.Reply](m.Reply)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 
+#: What an engine's `load_models` gives and its `switch_models` takes.
+Loaded = TypeVar("Loaded")
 
-class EngineProcess:
+
+class EngineProcess(Generic[Loaded]):
     """Base of the monitor, adaptation and resolution processes (see the module doc)."""
 
     role: str = ""
@@ -50,6 +61,8 @@ class EngineProcess:
     tick_period: float = 0.5
     #: Whether its leader puts the system's events on ROS 2 (a package with ``ros2:``).
     ros2_events: bool = False
+    #: What `load_models` raises for models it cannot run (refused, never fatal).
+    model_errors: tuple[type[Exception], ...] = (RraError,)
 
     def __init__(
         self, dep: Deployment, bus: BusConfig, *, host: str, name: str, heartbeat: float = 4.0
@@ -69,6 +82,10 @@ class EngineProcess:
         self._snapshot: dict[str, Any] = {}
         #: Its ROS 2 node (a package with ``ros2:``; `rra_agent.engines.ros2`).
         self.ros2: EngineRos2 | None = None
+        #: The run folder whose record holds the models of every version (None: none).
+        self.run_dir: Path | None = None
+        #: Models loaded for a reload (`prepare`), by digest, until a switch.
+        self._prepared: dict[str, Loaded] = {}
 
     # ---- hooks for the engines ---------------------------------------------------------
     def declare(self, session: zenoh.Session) -> list[Any]:
@@ -101,6 +118,44 @@ class EngineProcess:
 
     def extra_counters(self) -> dict[str, int]:
         return {}
+
+    def load_models(self, bundle: ModelBundle) -> Loaded:
+        """These models loaded (and compiled) beside the running ones, ready for
+        `switch_models`; one of `model_errors` if this engine cannot run them."""
+        raise NotImplementedError
+
+    def switch_models(self, loaded: Loaded) -> None:
+        """Run ``loaded`` from now on (and forget what was prepared)."""
+        raise NotImplementedError
+
+    def find_models(self, digest: str) -> ModelBundle:
+        """The models ``digest``: the run's record, else the Resolution Engine leader's."""
+        return find_bundle(digest, self.run_dir, self.session, self.keys)
+
+    # ---- new models (a reload, or a replica following its leader) ------------------------
+    def prepare(self, bundle: ModelBundle) -> m.Reply:
+        """`PrepareModels`: load ``bundle`` beside the running models (nothing changes yet)."""
+        try:
+            self._prepared[bundle.digest] = self.load_models(bundle)
+        except self.model_errors as e:
+            return m.Err(message=f"{self.name}: {e}", code="invalid")
+        return m.Ok(result={"models": bundle.digest})
+
+    def follow_models(self, digest: str) -> bool:
+        """Run the models ``digest`` (those its leader names): at once if prepared, else
+        loaded now. False (refused and counted) when they cannot be had: the replica keeps
+        its own. An empty digest names no models (a peer that does not say)."""
+        if not digest or digest == self.dep.models:
+            return True
+        try:
+            loaded = self._prepared.pop(digest, None)
+            if loaded is None:
+                loaded = self.load_models(self.find_models(digest))
+        except self.model_errors as e:
+            self.refuse("models", f"cannot switch to models {digest}: {e}")
+            return False
+        self.switch_models(loaded)
+        return True
 
     # ---- helpers -----------------------------------------------------------------------
     @property

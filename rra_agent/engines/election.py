@@ -8,7 +8,10 @@ session's Zenoh id (so two processes of one replica name are two claims, see
 decides on its main loop:
 
 - no live claim and it is the first live member by name (or nobody has claimed for
-  ``claim_after`` seconds): claim, with an epoch above every epoch seen;
+  ``claim_after`` seconds): claim, with an epoch above every epoch seen; a replica that
+  found itself stalled does not claim as the first member for ``claim_after``, and one that
+  started into a role that has had a leader claims nothing for twice that while another
+  member is up (a restarted replica leaves the lead to the standby);
 - a live claim beats its own: step down (undeclare its claim);
 - a receiver reports a newer epoch than its own (`observe_epoch`): step down and claim again
   above it.
@@ -71,6 +74,8 @@ class Election:
         self._entities: list[Any] = []
         self._leaderless_since: float | None = None
         self._defer_until = 0.0
+        #: Started into a role that has had a leader: no claim of any kind before this.
+        self._yield_until = 0.0
         #: A gap this long between ticks means this replica itself stalled (frozen,
         #: starved): its view of the tokens is being rebuilt, so it defers any claim.
         self._stall = max(0.5, 3 * tick_period)
@@ -123,9 +128,14 @@ class Election:
             if reply.ok is not None:
                 self._claim_seen(str(reply.ok.key_expr), True)
         if self.max_epoch > 0 and not self.claims:
-            # A leader answered before the election started (an epoch is known) but no
-            # claim is visible yet: wait before claiming rather than trust an empty view.
-            self._defer_until = self.clock() + self.claim_after
+            # The role has had a leader (an epoch is known) but no claim is visible: this
+            # replica restarted while its predecessor's standby takes over (or the claim is
+            # on its way). It leaves the lead to that standby, which claims at the latest
+            # `claim_after` after it saw the role leaderless, even when this replica's
+            # member token, first by name, came back first (a restart by the fork server
+            # takes milliseconds): twice that before it claims itself (alone, once that).
+            standby = bool(self.members - {self.me})
+            self._yield_until = self.clock() + (2 if standby else 1) * self.claim_after
         self._started = True
         self.decide()
 
@@ -217,9 +227,9 @@ class Election:
             )
             stale_own = {t for t in claims if t[1:] == mine}  # ours, re-declared
             deferred = self.clock() < self._defer_until
-            if (not deferred and should_claim(self.me, self.members, claims - stale_own)) or (
-                waited and not (claims - stale_own)
-            ):
+            yielding = self.clock() < self._yield_until  # restarted: the standby first
+            first = not deferred and should_claim(self.me, self.members, claims - stale_own)
+            if not yielding and (first or (waited and not (claims - stale_own))):
                 self._claim_lead()
         if self.term != before:
             self.changes += 1

@@ -76,7 +76,7 @@ from rra_agent.engines.injection import (
     typed_value,
 )
 from rra_agent.engines.leaders import LeaderWatch
-from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.engines.models import deploy_bundle
 from rra_agent.engines.ros2 import TopicSources
 from rra_agent.errors import RraError
 from rra_agent.models.measurements import is_ros2_source
@@ -112,10 +112,12 @@ def model_hosts(dep: Deployment, default: str) -> list[str]:
     )
 
 
-class ContextMonitorProcess(EngineProcess):
+class ContextMonitorProcess(EngineProcess[tuple[Deployment, ContextMonitor]]):
     """The Context Monitor (one replica of the ``monitor`` role)."""
 
     role = NAME
+    #: Loading new models imports their measurement functions.
+    model_errors = (RraError, ImportError, AttributeError, ValueError)
 
     def __init__(
         self,
@@ -153,7 +155,6 @@ class ContextMonitorProcess(EngineProcess):
         #: The run's record: the source samples the leader computed from.
         self.run_dir = run_dir
         self.rec: MonitorRecorder | None = None
-        self._prepared: dict[str, Deployment] = {}
         self._scheduled = False
         self.viz: Logger | None = None  # Rerun, when RRA_RERUN says so
         #: Every host of the model with its reachability measurements (none, unless the
@@ -314,7 +315,7 @@ class ContextMonitorProcess(EngineProcess):
 
     def _resolution_state(self, state: m.EngineState) -> None:
         """The leader's models first (a reload), then what is unavailable."""
-        self._follow_models(state.models)
+        self.follow_models(state.models)
         self._availability(state.unavailable)
 
     def _availability(self, unavailable: list[m.Unavailable]) -> None:
@@ -615,39 +616,21 @@ class ContextMonitorProcess(EngineProcess):
             try:
                 answer = _REPLY.decode(reply.ok.payload.to_bytes())
                 if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
-                    self._follow_models(str(answer.result.get("models", "")))
+                    self.follow_models(str(answer.result.get("models", "")))
                     return
             except (msgspec.DecodeError, msgspec.ValidationError):
                 continue
 
-    def prepare(self, bundle: ModelBundle) -> m.Reply:
-        """Load these models and import their measurement functions (nothing changes yet)."""
-        try:
-            dep = deploy_bundle(bundle, self.dep)
-            measurement_functions(dep)
-        except (RraError, ImportError, AttributeError, ValueError) as e:
-            return m.Err(message=f"{self.name}: {e}", code="invalid")
-        self._prepared[bundle.digest] = dep
-        return m.Ok(result={"models": bundle.digest})
+    def load_models(self, bundle: ModelBundle) -> tuple[Deployment, ContextMonitor]:
+        """These models and their core, their measurement functions imported."""
+        dep = deploy_bundle(bundle, self.dep)
+        return dep, ContextMonitor(dep.package.measurements, measurement_functions(dep),
+                                   self._port_types(dep))  # fmt: skip
 
-    def _follow_models(self, digest: str) -> None:
-        """Run the models the Resolution Engine leader runs (prepared, else loaded now)."""
-        if not digest or digest == self.dep.models:
-            return
-        try:
-            dep = self._prepared.pop(digest, None)
-            if dep is None:
-                dep = deploy_bundle(find_bundle(digest, self.run_dir, self.session, self.keys),
-                                    self.dep)  # fmt: skip
-            self.switch_models(dep)
-        except (RraError, ImportError, AttributeError, ValueError) as e:
-            self.refuse("models", f"cannot switch to models {digest}: {e}")
-
-    def switch_models(self, dep: Deployment) -> None:
+    def switch_models(self, loaded: tuple[Deployment, ContextMonitor]) -> None:
         """Compute the new measurements from now on: a new core, subscribers for the new
         sources, publishers for the new measurements; values of removed ones forgotten."""
-        core = ContextMonitor(dep.package.measurements, measurement_functions(dep),
-                              self._port_types(dep))  # fmt: skip
+        dep, core = loaded
         core.refusals = self.core.refusals
         previous, self.dep, self.core = self.dep.models, dep, core
         self.limits = {src: self._limit(src) for src in core.sources if not is_ros2_source(src)}

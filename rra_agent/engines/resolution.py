@@ -74,7 +74,7 @@ from rra_agent.engines.base import EngineProcess
 from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Ctl, Executor, Outcome, StepFailed, UnitFailure, spec_for
 from rra_agent.engines.leaders import LeaderWatch
-from rra_agent.engines.models import deploy_bundle, find_bundle
+from rra_agent.engines.models import deploy_bundle
 from rra_agent.engines.reconcile import observe, takeover_plan
 from rra_agent.engines.reflexes import ReflexCompiler, ReflexKeeper, Situation
 from rra_agent.engines.reload import (
@@ -128,7 +128,7 @@ _REFLEX = m.Codec[m.ReflexMessage](m.ReflexMessage)
 REFLEX_SYNC = 1.0
 
 
-class ResolutionEngineProcess(EngineProcess):
+class ResolutionEngineProcess(EngineProcess[Deployment]):
     role = NAME
     ros2_events = True  # its leader puts the events on ROS 2 (`rra_agent.engines.ros2`)
     tick_period = 0.1
@@ -156,7 +156,6 @@ class ResolutionEngineProcess(EngineProcess):
         #: bundles known here, and the models prepared for a reload.
         self.history: list[str] = []
         self._bundles: dict[str, ModelBundle] = {dep.models: dep.bundle} if dep.bundle else {}
-        self._prepared: dict[str, Deployment] = {}
         self.retry_after = retry_after
         self.start_timeout = start_timeout
         self.reconcile_period = reconcile_period
@@ -342,7 +341,7 @@ class ResolutionEngineProcess(EngineProcess):
         old = self.mirror
         if old is not None and old.fence == state.fence and state.version < old.version:
             return  # an older publication of the same leader, overtaken
-        self._follow_models(state.models)
+        self.follow_models(state.models)
         self.history = list(state.history)
         self.mirror = state
         self.selection, self.cv = frozenset(state.selection), dict(state.cv)
@@ -1116,7 +1115,7 @@ class ResolutionEngineProcess(EngineProcess):
         state = self._saved_state()
         if state is None:
             return
-        self._follow_models(state.models)  # the models of that state (a reload before)
+        self.follow_models(state.models)  # the models of that state (a reload before)
         self.history = list(state.history)
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}
         self.overrides = {n: dict(v) for n, v in state.overrides.items()}
@@ -1573,29 +1572,15 @@ class ResolutionEngineProcess(EngineProcess):
         if self.rec is not None:
             self.rec.reload(new.models, previous)
 
-    def prepare(self, bundle: ModelBundle) -> m.Reply:
-        """A standby: load the models a reload brings (nothing changes yet)."""
-        try:
-            self._prepared[bundle.digest] = deploy_bundle(bundle, self.dep)
-        except RraError as e:
-            return m.Err(message=f"{self.name}: {e}", code="invalid")
+    def load_models(self, bundle: ModelBundle) -> Deployment:
+        """These models (their bundle kept: a replica asks the leader for it)."""
+        new = deploy_bundle(bundle, self.dep)
         self._bundles[bundle.digest] = bundle
-        return m.Ok(result={"models": bundle.digest})
+        return new
 
-    def _follow_models(self, digest: str) -> None:
-        """A standby runs the models its leader runs (prepared, else loaded now)."""
-        if not digest or digest == self.dep.models:
-            return
-        try:
-            new = self._prepared.pop(digest, None)
-            if new is None:
-                bundle = self._bundles.get(digest) or find_bundle(
-                    digest, self.run_dir, self.session, self.keys)  # fmt: skip
-                new = deploy_bundle(bundle, self.dep)
-        except RraError as e:
-            self.refuse("models", f"cannot switch to models {digest}: {e}")
-            return
-        self.switch_models(new)
+    def find_models(self, digest: str) -> ModelBundle:
+        """The bundle known here, else the run's record's, else the leader's."""
+        return self._bundles.get(digest) or super().find_models(digest)
 
     def get_models(self, digest: str) -> m.Reply:
         try:

@@ -5,11 +5,14 @@ depth one would (`ZenohTransport.start_delivery`)."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 from test_hot_standby import ACTIVE, HOT, FakeSession, Sink, sample
 
 from rra_agent.bus import messages as m
+from rra_agent.bus.config import BusConfig
 from rra_agent.node.core import REPLAY_MAX_AGE, NodeCore
-from rra_agent.node.runtime import ZenohTransport
+from rra_agent.node.runtime import ZenohTransport, rehearse
 
 
 def starting(now: list[float]) -> tuple[ZenohTransport, FakeSession, NodeCore]:
@@ -60,3 +63,39 @@ def test_a_standby_key_sample_that_came_while_starting_is_held_not_delivered():
     assert core.node.got == []
     assert isinstance(core.handle(m.Rewire(port="cmd", keys=[HOT])), m.Ok)
     assert core.node.got == [{"n": 7}]  # held, and delivered at the switch to its key
+
+
+class Ledger:
+    """A stand-in Zenoh session that counts what is declared and not undeclared yet."""
+
+    def __init__(self) -> None:
+        self.live: list[str] = []
+        self.seen: list[str] = []
+
+    def _declare(self, what: str):
+        self.live.append(what)
+        self.seen.append(what)
+        return SimpleNamespace(undeclare=lambda: self.live.remove(what), put=lambda *a, **k: None)
+
+    def declare_subscriber(self, key: str, callback):
+        return self._declare(f"subscriber {key}")
+
+    def declare_publisher(self, key: str, **_):
+        return self._declare(f"publisher {key}")
+
+    def declare_queryable(self, key: str, callback):
+        return self._declare(f"queryable {key}")
+
+    def liveliness(self):
+        return SimpleNamespace(declare_token=lambda key: self._declare(f"token {key}"))
+
+
+def test_a_spare_rehearses_a_start_and_leaves_nothing_declared():
+    """`rehearse` (a spare, while it waits) declares what a starting node declares, on keys of
+    its own, and undeclares all of it."""
+    session = Ledger()
+    rehearse(session, "4242", BusConfig())  # type: ignore[arg-type]
+    kinds = sorted(x.split()[0] for x in session.seen)
+    assert kinds == ["publisher", "queryable", "subscriber", "token"]
+    assert all(" rra/_spare/4242/" in x for x in session.seen)
+    assert session.live == []

@@ -508,10 +508,11 @@ def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> N
             from rra_agent.bus.session import preopen as open_ahead
             from rra_agent.node.runtime import rehearse
 
-            session = open_ahead(msgspec.json.decode(preopen, type=BusConfig))
+            bus = msgspec.json.decode(preopen, type=BusConfig)
+            session = open_ahead(bus)
             if session is not None and not select.select([pipe], [], [], 0)[0]:
                 with contextlib.suppress(Exception):  # no request yet: time to rehearse
-                    rehearse(session, str(os.getpid()))
+                    rehearse(session, str(os.getpid()), bus)
         data = b""
         while not data.endswith(b"\n"):
             chunk = os.read(pipe, 65536)

@@ -6,7 +6,11 @@ command line, initial CV values and compiled rules. In process: nothing is forke
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 from rra_agent.core import adaptation
 from rra_agent.deployment import _prepared, deploy, prepare
@@ -88,3 +92,18 @@ def test_the_allocators_free_blocks_are_read_and_filled():
     after = forkserver._pool_vacancies()
     # What is left free is the fillers' own newest pools (and their list), not the old ones.
     assert sum(after[s] for s in after if s >= 48) < sum(before[s] for s in before if s >= 48)
+
+
+@pytest.mark.system  # a new interpreter (a second, no session)
+def test_numpy_and_rosbags_are_imported_only_for_ros2():
+    """`rra up` (its CLI and host agent) and the engines import numpy and rosbags (the ROS 2
+    message types, ~8 MiB of private memory per interpreter) only once a package with ROS 2
+    builds its type registry. A new interpreter: this one has imported them already."""
+    modules = ["rra_agent.cli.up", "rra_agent.engines.monitor", "rra_agent.engines.adaptation",
+               "rra_agent.engines.resolution", "rra_agent.node.process"]  # fmt: skip
+    code = (
+        f"import sys\nfor m in {modules!r}: __import__(m)\n"
+        "print(sorted({'numpy', 'rosbags'} & set(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -6,6 +6,7 @@ command line, initial CV values and compiled rules. In process: nothing is forke
 from __future__ import annotations
 
 import argparse
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -107,3 +108,48 @@ def test_numpy_and_rosbags_are_imported_only_for_ros2():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+
+
+WARM_MODULE = """
+seen = []
+
+
+def warm_up(args):
+    seen.append(("warm_up", args))
+
+
+def main(args):
+    seen.append(("main", args))
+    return 0
+"""
+
+
+def test_an_engine_started_without_the_branch_warms_up_after_the_failover(
+    tmp_path, monkeypatch
+):
+    """The engines' branch retires when idle (`forkserver.BRANCH_IDLE`, on by default); an
+    engine started after that (a killed one replaced, whose standby has taken over) runs
+    in a spare, which has not imported it: `run_main` waits `REWARM_DELAY` (the standby's
+    first plan), then imports it and runs its ``warm_up`` (~0.35 s of CPU) and ``main``.
+    A module already imported (warmed up by the branch) starts at once."""
+    (tmp_path / "warmmod.py").write_text(WARM_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(forkserver.atexit, "_clear", lambda: None)  # pytest's hooks stay
+    monkeypatch.setattr(forkserver.atexit, "_run_exitfuncs", lambda: None)
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    monkeypatch.delitem(sys.modules, "warmmod", raising=False)
+    waits: list[float] = []
+    monkeypatch.setattr(forkserver.time, "sleep", lambda s: waits.append(s))
+    try:
+        assert forkserver.run_main("warmmod", ["x"]) == 0
+        assert waits == [forkserver.REWARM_DELAY]
+        assert forkserver.run_main("warmmod", ["y"]) == 0
+        seen = sys.modules["warmmod"].seen
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        sys.modules.pop("warmmod", None)
+    assert seen == [("warm_up", ["x"]), ("main", ["x"]), ("main", ["y"])]
+    assert waits == [forkserver.REWARM_DELAY]  # once: the second found it imported
+    assert forkserver.REWARM_DELAY >= 1 and forkserver.BRANCH_IDLE > 0  # retired by default

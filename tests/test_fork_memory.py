@@ -110,6 +110,20 @@ def test_numpy_and_rosbags_are_imported_only_for_ros2():
     assert out.stdout.strip() == "[]"
 
 
+@pytest.mark.system  # a new interpreter (a second, no session)
+def test_rra_up_does_not_import_the_node_sdk():
+    """`rra up`'s process (the CLI, the host agent, the catalog) names a node's spec variable
+    and the container implementation without importing the Node SDK (rra_agent.node and the
+    reflexes' core it imports: 15 modules, ~0.5 MiB private in the longest-lived process)."""
+    code = (
+        "import sys, rra_agent.cli.up\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('rra_agent.node', "
+        "'rra_agent.core.reflex', 'rra_agent.core.monitor'))))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 
 
 WARM_MODULE = """

@@ -43,7 +43,7 @@ from rra_agent.bus import heartbeat as hb
 from rra_agent.bus.config import ENV_VAR as BUS_ENV
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import check_chunk
-from rra_agent.bus.messages import Failure, NodeSpec
+from rra_agent.bus.messages import SPEC_ENV, Failure, NodeSpec
 from rra_agent.host import scheduling
 from rra_agent.host.forkserver import (
     ForkServer,
@@ -52,7 +52,6 @@ from rra_agent.host.forkserver import (
     die_with_parent,
     python_module,
 )
-from rra_agent.node.process import SPEC_ENV
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
 Prober = Callable[[str, int, float], None]

@@ -17,12 +17,14 @@ import msgspec
 
 from rra_agent import trace
 from rra_agent.bus import failure
+from rra_agent.bus.messages import SPEC_ENV as _SPEC_ENV
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.errors import RraError
+from rra_agent.models.system import CONTAINER as _CONTAINER
 from rra_agent.node.loading import load_node_class
 
 # ---- the process entry point ----------------------------------------------------------
-SPEC_ENV = "RRA_NODE_SPEC"
+SPEC_ENV = _SPEC_ENV
 
 
 #: Exit status of a node whose spec or implementation is unusable (not restarted at once).
@@ -36,9 +38,8 @@ def read_spec(path: str | None) -> NodeSpec:
     return msgspec.json.decode(raw, type=NodeSpec)
 
 
-#: The implementation of a component container's process (`rra_agent.node.container`; its
-#: spec is made by the host agent, never taken from the bus).
-CONTAINER = "rra_agent.node.container"
+#: The implementation of a component container's process (defined with the models).
+CONTAINER = _CONTAINER
 
 
 def run_node(spec: NodeSpec) -> int:

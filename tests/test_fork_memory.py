@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from rra_agent.core import adaptation
@@ -167,3 +168,44 @@ def test_an_engine_started_without_the_branch_warms_up_after_the_failover(
     assert seen == [("warm_up", ["x"]), ("main", ["x"]), ("main", ["y"])]
     assert waits == [forkserver.REWARM_DELAY]  # once: the second found it imported
     assert forkserver.REWARM_DELAY >= 1 and forkserver.BRANCH_IDLE > 0  # retired by default
+
+
+APART = """
+import sys
+import msgspec
+from rra_agent.deployment import deploy_apart
+from rra_agent.errors import RraError
+
+for path in sys.argv[1:]:
+    dep = deploy_apart(path)
+    print(msgspec.json.encode([dep.configured, dep.package.system, dep.package.manifest,
+                               dep.models, sorted(dep.selection), dep.initial_cv()]).decode())
+print("lark" in sys.modules)
+try:
+    deploy_apart(sys.argv[1] + "-missing")
+except RraError as e:
+    print(e)
+"""
+
+
+@pytest.mark.system  # a new interpreter, which forks (no session)
+def test_rra_up_loads_its_package_in_a_fork_and_keeps_only_the_deployment(tmp_path):
+    """`rra up` runs for the whole run: it loads the package in a forked child and takes the
+    deployment it made (`deployment.deploy_apart`), so it never imports the model parsers
+    (lark) nor keeps what loading left in its heap (~3.5 MiB private, docs/performance.md).
+    The deployment is the one `deploy` makes, down to its encoding (msgspec omits a default
+    by identity: a plain pickle's defaults are new objects, and node specs would encode and
+    hash otherwise than the engines'); a model error is `deploy`'s own message."""
+    script = tmp_path / "apart.py"
+    script.write_text(APART)
+    packages = [OBJECT_STORING, *(OBJECT_STORING.parent / n for n in ("quadcopter", "ros2_rover"))]
+    argv = [sys.executable, str(script), *map(str, packages)]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout.splitlines()
+    for line, package in zip(out, packages, strict=False):
+        dep = deploy(package)
+        parts = [dep.configured, dep.package.system, dep.package.manifest, dep.models]
+        assert line == msgspec.json.encode(
+            [*parts, sorted(dep.selection), dep.initial_cv()]
+        ).decode()
+    assert out[len(packages)] == "False"  # lark: never imported
+    assert "no such system package" in out[-1]

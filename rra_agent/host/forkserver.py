@@ -283,11 +283,9 @@ def _serve_requests(
             while len(spares) < wanted:
                 spares.append(_spare([requests, out], host_pid, spares, held, preopen))
         due = branch.due(time.monotonic()) if branch is not None else None
-        ready = select.select([requests], [], [], due)[0]
-        # Idle is without an engine start: node starts (every few seconds) do not count.
-        if branch is not None and branch.tick(time.monotonic()):
-            held[:] = []
-        if not ready:
+        if not select.select([requests], [], [], due)[0]:
+            if branch is not None and branch.tick(time.monotonic()):
+                held[:] = []
             continue
         chunk = os.read(requests, 65536)
         if not chunk:

@@ -15,10 +15,15 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pickle
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Any
+
+import msgspec
 
 from rra_agent.core.features import complete_deployment
 from rra_agent.core.resolution import resolve_deployment
@@ -135,6 +140,58 @@ def deploy(path: str | Path, names: Sequence[str] = ()) -> Deployment:
         if kept is not None and kept[0] == package_stamp(kept[1].package):
             return kept[1]
     return _deploy(path, names)
+
+
+def deploy_apart(path: str | Path, names: Sequence[str] = ()) -> Deployment:
+    """`deploy` in a forked child, whose result this process takes (pickled, its msgspec
+    Structs as msgpack: `_StructPickler`): a long-lived caller (``rra up``'s host agent)
+    then never imports the model parsers (lark and the DSLs) nor keeps what loading left in
+    its heap, only the deployment (-3.5 MiB private, docs/performance.md). A model error, or a
+    child that cannot deliver, is loaded again here: its message is `deploy`'s own. With
+    threads running it is `deploy` (a fork copies only the calling thread)."""
+    if threading.active_count() > 1 or not hasattr(os, "fork"):
+        return deploy(path, names)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover (the child)
+        code = 1
+        try:
+            os.close(read)
+            with os.fdopen(write, "wb") as out:
+                _StructPickler(out, protocol=pickle.HIGHEST_PROTOCOL).dump(_deploy(path, names))
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(write)
+    with os.fdopen(read, "rb") as got:
+        data = got.read()
+    _, status = os.waitpid(pid, 0)
+    if status == 0 and data:
+        with contextlib.suppress(Exception):
+            dep = pickle.loads(data)
+            if isinstance(dep, Deployment):
+                return dep
+    return _deploy(path, names)
+
+
+def _struct(data: bytes, cls: type[msgspec.Struct]) -> msgspec.Struct:
+    return msgspec.msgpack.decode(data, type=cls)
+
+
+class _StructPickler(pickle.Pickler):
+    """Pickles a msgspec Struct as its msgpack: msgspec omits a field equal to its default
+    only when it *is* the default object, and an unpickled ``"deployment"`` or
+    ``Supervision()`` is a new one (node specs would encode, and hash, otherwise than the
+    engines'); decoded, a field left out takes the class's own default. A Struct that does
+    not come back equal from msgpack is pickled as usual."""
+
+    def reducer_override(self, obj: Any) -> Any:
+        if isinstance(obj, msgspec.Struct):
+            with contextlib.suppress(Exception):
+                data = msgspec.msgpack.encode(obj)
+                if msgspec.msgpack.decode(data, type=type(obj)) == obj:
+                    return _struct, (data, type(obj))
+        return NotImplemented
 
 
 def _key(path: str | Path, names: Sequence[str]) -> tuple[Path, tuple[str, ...]]:

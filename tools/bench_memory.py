@@ -15,7 +15,9 @@ from the log file its stdout goes to), its threads, RSS, PSS split into anonymou
 all processes by kind of mapping. ``--env NAME=VALUE`` (repeatable) runs ``rra up`` with a
 variable set (e.g. ``MALLOC_ARENA_MAX=2``), for experiments. ``--replicas N`` runs ``rra up
 --replicas N`` (default 2: a leader and a hot standby of each engine), to show what the
-engines' standbys cost.
+engines' standbys cost. ``--bytecode`` compiles rra_agent first and runs it from that
+bytecode, as a wheel install does, when the environment says ``PYTHONDONTWRITEBYTECODE``
+(then every process compiles the modules it imports from source: `bytecode_env`).
 
 ``--flood``: what oversized samples cost. Once the system runs, the PSS of all its processes
 before, after three 10 MB samples on each of four keys (two data topics that the Context
@@ -325,6 +327,18 @@ def print_breakdown(layout: str, procs: list[Process]) -> None:
     print_table(["mapping", "PSS"], [[kind, kb / 1024] for kb, kind in ordered])
 
 
+def bytecode_env(prefix: Path) -> dict[str, str]:
+    """Variables under which ``rra up`` imports rra_agent from bytecode compiled here first
+    (into ``prefix``), as a wheel installs it: with ``PYTHONDONTWRITEBYTECODE`` set and no
+    ``__pycache__`` (an editable checkout), every process that imports a module compiles it
+    from source, and the compiler's freed memory stays in the heap of the zygote, the
+    engines' branch and ``rra up``, where the forked processes' allocations land and copy it."""
+    env = {"PYTHONDONTWRITEBYTECODE": "", "PYTHONPYCACHEPREFIX": str(prefix)}
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "rra_agent")],
+                   env={**os.environ, **env}, check=True, stdout=subprocess.DEVNULL)  # fmt: skip
+    return env
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("package", nargs="?", default=str(ROOT / "scenarios" / "object_storing"))
@@ -337,6 +351,8 @@ def main() -> int:
                     help="replicas of each engine (rra up --replicas; default 2)")  # fmt: skip
     ap.add_argument("--flood", action="store_true",
                     help="PSS before and after floods of oversized samples")  # fmt: skip
+    ap.add_argument("--bytecode", action="store_true",
+                    help="rra_agent's modules from compiled bytecode, as installed (see below)")
     args = ap.parse_args()
     env = dict(e.split("=", 1) for e in args.env)
     package = Path(args.package).resolve()
@@ -344,6 +360,8 @@ def main() -> int:
         return flood_report(package, args.settle, env)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rra-memory-pkg-") as tmp:
+        if args.bytecode:
+            env.update(bytecode_env(Path(tmp) / "pycache"))
         layouts = ["processes", "one container"] if args.compare else (
             ["one container"] if args.containers else ["processes"])  # fmt: skip
         for layout in layouts:
@@ -353,7 +371,8 @@ def main() -> int:
             rows.append([layout, running, len(procs), rss, pss, f"<= {GOAL_PSS_MIB:g}"])
             print_breakdown(layout, procs)
     print()
-    extra = " ".join([*args.env, *([f"--replicas {args.replicas}"] if args.replicas != 2 else [])])
+    extra = " ".join([*args.env, *([f"--replicas {args.replicas}"] if args.replicas != 2 else []),
+                      *(["--bytecode"] if args.bytecode else [])])  # fmt: skip
     extra = f" ({extra})" if extra else ""
     print(f"memory of {package.name} under rra up (every process: agent, engines, nodes){extra}")
     print_table(["layout", "components", "processes", "RSS MiB", "PSS MiB", "goal PSS MiB"],

@@ -511,6 +511,11 @@ class Ros2Spec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     ports: dict[str, str] = {}
 
 
+#: The environment variable that hands a node process its `NodeSpec` (JSON) when it is not
+#: forked (here, not in the node's modules: the host agent sets it without the Node SDK).
+SPEC_ENV = "RRA_NODE_SPEC"
+
+
 class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
     """Everything a node process needs; passed as JSON in ``RRA_NODE_SPEC``."""
 

@@ -33,7 +33,7 @@ from rra_agent.bus.config import (
 )
 from rra_agent.bus.counters import topic_limits
 from rra_agent.cli.common import add_wide_argument
-from rra_agent.deployment import Deployment, deploy
+from rra_agent.deployment import Deployment, deploy_apart
 from rra_agent.host.agent import HostAgent, schedule_self, security, state_printer
 from rra_agent.host.catalog import Catalog
 from rra_agent.host.forkserver import trim_heap
@@ -217,7 +217,9 @@ def hub_bus(args: argparse.Namespace) -> BusConfig:
 
 def run(args: argparse.Namespace) -> int:
     names = [n.strip() for v in args.select for n in v.split(",") if n.strip()]
-    dep = deploy(args.package, names)
+    # Loaded in a fork (this process runs for the whole run: it keeps the deployment, not
+    # the parsers and what loading left), before any thread starts.
+    dep = deploy_apart(args.package, names)
     bus = hub_bus(args)
     bus.host_router(hub=True)  # a refused endpoint fails here, before the run folder exists
     stamp = time.strftime("%Y%m%d-%H%M%S")

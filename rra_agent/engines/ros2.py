@@ -36,7 +36,6 @@ from rra_agent.package.ros2 import registry
 from rra_agent.ros2.bridge import EVENTS_TYPE
 from rra_agent.ros2.endpoint import Received, Ros2Context, Ros2Node, Subscription
 from rra_agent.ros2.errors import FieldError
-from rra_agent.ros2.types import get_field
 
 #: The namespace of rra-agent's own ROS 2 nodes.
 NAMESPACE = "/rra"
@@ -111,6 +110,10 @@ class TopicSources:
         return sorted(self.subs)
 
     def _on_message(self, source: str) -> Callable[[Received], None]:
+        # Imported here, with a ROS 2 topic to read: it imports numpy and rosbags, which an
+        # engine of a package without ROS 2 never needs (docs/performance.md, Memory).
+        from rra_agent.ros2.types import get_field
+
         fields = sorted(self.fields.get(source, ()))
 
         def callback(got: Received) -> None:

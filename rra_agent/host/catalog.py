@@ -30,13 +30,13 @@ from rra_agent.bus.keys import check_chunk
 from rra_agent.host.forkserver import python_module
 from rra_agent.models.manifest import Ros2Settings
 from rra_agent.models.system import (
+    CONTAINER,
     Component,
     Implementation,
     SystemModel,
     coerce_parameter,
     is_ros2_implementation,
 )
-from rra_agent.node.process import CONTAINER
 from rra_agent.package.ros2 import interfaces_folder, node_name
 
 

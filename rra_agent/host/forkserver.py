@@ -38,7 +38,7 @@ Protocol on the zygote's stdin/stdout, one JSON object per line:
   "argv": [...] | null, "cwd": "<dir>" | null, "main": "<module>" | null, "gate": bool}``
   (``argv`` null: a Python node; ``main`` set: ``argv`` is ``python -m <module> ...``, run
   in the fork; ``gate``: a Python node that prepares, then waits for its gate to open before
-  any of its code runs, `rra_agent.node.gate`);
+  any of its code runs, `rra_agent.host.gate`);
 - zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to;
   for a ``main`` request the branch writes it, on the same pipe).
 
@@ -74,7 +74,7 @@ import msgspec
 
 from rra_agent import trace
 from rra_agent.bus.messages import NodeSpec
-from rra_agent.node import gate
+from rra_agent.host import gate
 
 #: What every Python node needs: imported once, in the zygote. Also what a node imports as
 #: it starts (``run_node``) or may import in its hooks (Rerun logging: the module, not
@@ -103,12 +103,20 @@ SPARES = int(os.environ.get("RRA_SPARE_NODES", "1"))
 #: and a swap's old node is reaped; on two cores that made a ``stop-then-start`` swap ~3 ms
 #: slower. A request that finds no spare meanwhile forks one for itself.
 SPARE_DELAY = float(os.environ.get("RRA_SPARE_DELAY", "0.25"))
-#: Seconds without a request after which the branch (`_Branch`) is retired; 0 (the default):
-#: never. Retiring saves ~9 MiB, but the next engine start forks and warms a new branch, and
-#: that warm-up (~0.5 s of CPU) lands exactly when a killed engine is replaced: on two cores
-#: it delayed the standby Resolution Engine's first plan after a kill -9 from ~0.2 to ~0.6 s
+#: Seconds without a request after which the branch (`_Branch`) is retired (0: never). An
+#: engine started after that (a killed one replaced) is handed to a spare, like a node, and
+#: warms up in its own process `REWARM_DELAY` later (`run_main`). Forking and warming a new
+#: branch instead held the host agent's answer for the warm-up (~0.35 s of CPU) exactly
+#: when the standby that had taken over asked it for its first plan's nodes: on two cores
+#: the standby Resolution Engine's switch after a kill -9 came ~0.6 s late instead of ~0.2 s
 #: (scenarios/quadcopter/engine_faults.scenario.yaml, resolution_killed).
-BRANCH_IDLE = float(os.environ.get("RRA_BRANCH_IDLE", "0"))
+BRANCH_IDLE = float(os.environ.get("RRA_BRANCH_IDLE", "5"))
+#: Seconds an engine started without the branch waits before it imports and warms up its
+#: module: the replacement of a killed engine, whose standby has taken over (claim 6-10 ms,
+#: first plan ~0.2 s after the kill). Warming up at once, even at nice 19 or SCHED_IDLE,
+#: delayed that plan on two loaded cores (engine_faults::resolution_killed failed 4 of 6
+#: and 2 of 6 runs; with the warm-up 2 s later, none of 5: docs/performance.md).
+REWARM_DELAY = float(os.environ.get("RRA_REWARM_DELAY", "2"))
 
 
 def _prctl(option: int, value: int) -> bool:
@@ -243,7 +251,7 @@ def serve(
     """The zygote's main loop (``python -m rra_agent.host.forkserver HOST_PID [--main JSON]...
     [--spare-bus JSON] [MODULE ...]``). ``spare_bus``: the bus configuration every node of
     this host has (none with per-node identities): each spare opens its session ahead."""
-    gate.block()  # every fork starts with the gate's signal blocked (`rra_agent.node.gate`)
+    gate.block()  # every fork starts with the gate's signal blocked (`rra_agent.host.gate`)
     _preload((*PRELOAD, *preload))
     with contextlib.suppress(Exception):
         _warm_sdk()
@@ -275,7 +283,8 @@ def _serve_requests(
 ) -> int:
     """Answer the requests read from ``requests`` until its end of file, keeping ``wanted``
     spares (each opening a session with ``preopen``, if given); a request with ``main``
-    goes to ``branch`` if there is one, which is retired once it has idled `BRANCH_IDLE`."""
+    goes to ``branch`` if there is one, which is retired once it has idled `BRANCH_IDLE`
+    (then to a spare, which warms it up itself, `REWARM_DELAY` later: `run_main`)."""
     held = [branch.pipe] if branch is not None and branch.pipe is not None else []
     buffer = b""
     refill = 0.0  # when the next spare may be forked (`SPARE_DELAY` after a start)
@@ -300,7 +309,7 @@ def _serve_requests(
             if not line.strip():
                 continue
             request = json.loads(line)
-            if branch is not None and request.get("main"):
+            if branch is not None and branch.pipe is not None and request.get("main"):
                 branch.forward(line)
                 held[:] = [branch.pipe] if branch.pipe is not None else []
             else:
@@ -320,11 +329,13 @@ class _Branch:
     that died is forked again at the next request.
 
     Once it has had no request for `BRANCH_IDLE` seconds the zygote *retires* it (closes its
-    pipe: it exits; the engines it forked are the host agent's and run on) and forks a new
-    one, which warms up again, at the next request. Every page an engine has written is the
-    engine's own copy, so the branch's original is its alone: kept, it costs its private
-    memory (6 MiB of object_storing's, docs/performance.md) for nothing but a faster restart
-    of a crashed engine, whose standby has taken over meanwhile."""
+    pipe: it exits; the engines it forked are the host agent's and run on); a later start
+    (a crashed engine replaced, whose standby has taken over meanwhile) goes to a spare,
+    which warms up in its own process once that standby's first plan is done
+    (`REWARM_DELAY`, `run_main`): the zygote answers at once. Every page an engine has
+    written is the engine's own copy, so the branch's original is its alone: kept, it costs
+    its private memory (~6 MiB of object_storing's, docs/performance.md) for nothing but a
+    replacement that shares its warm-up (one started by a spare has ~10 MiB of its own)."""
 
     def __init__(
         self, mains: list[list[str]], out: int, host_pid: int, spares: list[tuple[int, int]]
@@ -591,12 +602,17 @@ def run_main(module: str, args: list[str]) -> int:
     """``python -m MODULE ARGS`` in this forked interpreter: ``MODULE.main(ARGS)`` with what a
     new interpreter would have (``sys.argv``, Python's SIGINT handler, no ``atexit`` hook of
     the zygote's); its exit status as the interpreter's would be, after its ``atexit`` hooks.
+    A module the process has not imported yet (run by a spare, not by the branch that
+    warmed it up: a replaced engine) is imported and warmed up first, `REWARM_DELAY` later.
     An uncaught exception is printed with its traceback (status 1; a KeyboardInterrupt ends
     the process by SIGINT, as Python does)."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
     atexit._clear()
     code, interrupted = 1, False
     try:
+        if module not in sys.modules:  # not warmed by a branch: warm up here, later
+            time.sleep(REWARM_DELAY)
+            _warm_mains([[sys.executable, "-m", module, *args]])
         mod = importlib.import_module(module)
         sys.argv = [getattr(mod, "__file__", None) or module, *args]
         code = _status(mod.main(args))
@@ -715,7 +731,7 @@ class ForkServer:
     ) -> int:
         """Start a node; its pid. ``main``: ``argv`` is ``python -m main ...``, run in the
         fork rather than ``exec``ed (the zygote must have imported ``main``). ``gate``: a
-        Python node that waits for `rra_agent.node.gate.open_gate` before its code runs. Raises
+        Python node that waits for `rra_agent.host.gate.open_gate` before its code runs. Raises
         `ForkServerError` if the zygote is gone or does not answer within ``timeout`` (then
         it is killed: a new one starts next time)."""
         if self.dead:

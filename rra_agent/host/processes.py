@@ -44,8 +44,8 @@ from rra_agent.bus import heartbeat as hb
 from rra_agent.bus.config import ENV_VAR as BUS_ENV
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.keys import check_chunk
-from rra_agent.bus.messages import Failure, NodeSpec
-from rra_agent.host import scheduling
+from rra_agent.bus.messages import SPEC_ENV, Failure, NodeSpec
+from rra_agent.host import gate, scheduling
 from rra_agent.host.forkserver import (
     ForkServer,
     ForkServerError,
@@ -53,8 +53,7 @@ from rra_agent.host.forkserver import (
     die_with_parent,
     python_module,
 )
-from rra_agent.node import gate
-from rra_agent.node.process import CONTAINER, SPEC_ENV
+from rra_agent.models.system import CONTAINER
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
 Prober = Callable[[str, int, float], None]
@@ -132,7 +131,7 @@ class LocalHost:
         #: per-node identity): the fork server's spares open their sessions with it ahead
         #: (``RRA_SPARE_SESSION=0``: not).
         self.spare_bus: BusConfig | None = None
-        #: Whether a node is to start gated (`rra_agent.node.gate`): the host agent says so
+        #: Whether a node is to start gated (`rra_agent.host.gate`): the host agent says so
         #: for the replacement of a node still stopping.
         self.gate_for: Callable[[NodeSpec], bool] = lambda spec: False
         #: Gated nodes whose gate is not open yet: pid -> node name.

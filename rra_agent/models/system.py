@@ -253,6 +253,12 @@ def is_ros2_implementation(impl: Implementation, component: Component | None = N
     return component is not None and component.ros2 is not None
 
 
+#: The implementation of a component container's process (`rra_agent.node.container`; its
+#: spec is made by the host agent, never taken from the bus). Here, not in the node's
+#: modules: the host agent names it without importing the Node SDK.
+CONTAINER = "rra_agent.node.container"
+
+
 class Component(FrozenModel, frozen=True):
     name: str
     implementation: Implementation

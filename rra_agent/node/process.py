@@ -18,12 +18,14 @@ import msgspec
 
 from rra_agent import trace
 from rra_agent.bus import failure
+from rra_agent.bus.messages import SPEC_ENV as _SPEC_ENV
 from rra_agent.bus.messages import NodeSpec
 from rra_agent.errors import RraError
+from rra_agent.models.system import CONTAINER as _CONTAINER
 from rra_agent.node.loading import load_node_class
 
 # ---- the process entry point ----------------------------------------------------------
-SPEC_ENV = "RRA_NODE_SPEC"
+SPEC_ENV = _SPEC_ENV
 
 #: A start gate: called with "was the node told to stop?", True once the node may start.
 Gate = Callable[[Callable[[], bool]], bool]
@@ -40,9 +42,8 @@ def read_spec(path: str | None) -> NodeSpec:
     return msgspec.json.decode(raw, type=NodeSpec)
 
 
-#: The implementation of a component container's process (`rra_agent.node.container`; its
-#: spec is made by the host agent, never taken from the bus).
-CONTAINER = "rra_agent.node.container"
+#: The implementation of a component container's process (defined with the models).
+CONTAINER = _CONTAINER
 
 
 def run_node(spec: NodeSpec, gate: Gate | None = None) -> int:
@@ -53,7 +54,7 @@ def run_node(spec: NodeSpec, gate: Gate | None = None) -> int:
     constructor, ``import_state``, ``on_start``, or a ``sys.exit`` with a non-zero status) is
     printed to its log with its traceback and reported to its host agent
     (`rra_agent.bus.failure`): exit status 2 when the spec or implementation is unusable, 1
-    for any other exception. ``gate``: a replacement's start gate (`rra_agent.node.gate`):
+    for any other exception. ``gate``: a replacement's start gate (`rra_agent.host.gate`):
     called once the session is open and the data ports are declared, it returns when the
     node's code may run (False: stop without running it).
     """

@@ -265,7 +265,7 @@ class NodeRuntime:
         gate: Callable[[Callable[[], bool]], bool] | None = None,
     ) -> None:
         self.spec = spec
-        #: A replacement's start gate (`rra_agent.node.gate`): nothing of the node's code
+        #: A replacement's start gate (`rra_agent.host.gate`): nothing of the node's code
         #: runs before it opens.
         self.gate = gate
         self.node_cls = node_cls

@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rra_agent.models.manifest import Ros2Settings
 from rra_agent.models.measurements import Measurement
@@ -29,7 +30,9 @@ from rra_agent.package.yamlload import PathItem
 from rra_agent.ros2.errors import Ros2Error
 from rra_agent.ros2.launch import parse_implementation
 from rra_agent.ros2.names import check_node_name, qualify
-from rra_agent.ros2.types import TypeRegistry
+
+if TYPE_CHECKING:  # imported where a registry is built: it imports numpy and rosbags (8 MiB)
+    from rra_agent.ros2.types import TypeRegistry
 
 #: Measurement type -> the ROS 2 field types it can take its value from.
 _MEASURABLE = {
@@ -55,6 +58,8 @@ def registry(root: str | Path, settings: Ros2Settings) -> TypeRegistry:
     key = (settings.distro, folder)
     types = _registries.get(key)
     if types is None:
+        from rra_agent.ros2.types import TypeRegistry
+
         types = TypeRegistry(settings.distro)
         if folder is not None:
             types.register_folder(folder)

@@ -13,12 +13,14 @@ from __future__ import annotations
 import json
 from collections import Counter
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rra_agent.ros2.endpoint import Received, Ros2Node, Subscription
 from rra_agent.ros2.errors import FieldError
 from rra_agent.ros2.names import qualify
-from rra_agent.ros2.types import TypeRegistry, get_field
+
+if TYPE_CHECKING:  # imported where used: it imports numpy and rosbags, which an engine of a
+    from rra_agent.ros2.types import TypeRegistry  # package without ROS 2 never needs
 
 PREFIX = "ros2:"
 EVENTS_TOPIC = "/rra/events"
@@ -62,7 +64,10 @@ class TopicField:
         on_value: Callable[[Any, Received], None],
         on_drop: Callable[[str, str], None] | None = None,
     ) -> None:
+        from rra_agent.ros2.types import get_field
+
         check_measurement(node.ctx.types, topic, ros_type, field)
+        self.get_field = get_field
         self.field = field
         self.on_value = on_value
         self.on_drop = on_drop
@@ -74,7 +79,7 @@ class TopicField:
     def _on_sample(self, got: Received) -> None:
         assert got.message is not None
         try:
-            value = get_field(got.message, self.field)
+            value = self.get_field(got.message, self.field)
         except FieldError as e:  # an index past the end of a sequence
             self._drop("field", f"{self.sub.key.name}: {e}")
             return

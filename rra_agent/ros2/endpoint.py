@@ -21,7 +21,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -46,7 +46,9 @@ from rra_agent.ros2.names import (
     qualify,
 )
 from rra_agent.ros2.tokens import Kind, Qos, Token, node_token
-from rra_agent.ros2.types import TypeRegistry
+
+if TYPE_CHECKING:  # a registry is built by its user; importing it imports numpy and rosbags
+    from rra_agent.ros2.types import TypeRegistry
 
 Message = dict[str, Any]
 

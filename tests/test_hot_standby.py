@@ -121,7 +121,7 @@ def test_a_sample_of_the_producer_swapped_out_is_not_delivered_after_the_switch(
     """A command of the old controller that was on its way when the rewire dropped it (in
     its subscription's queue, or waiting for the node's lock while the rewire ran) must not
     reach the node after the switch: it would drive one more step with the old command."""
-    from rra_agent.node.runtime import ZenohTransport
+    from rra_agent.node.runtime import ZenohTransport, bind_ports
 
     session = FakeSession()
     transport = ZenohTransport(session)  # type: ignore[arg-type]
@@ -131,8 +131,7 @@ def test_a_sample_of_the_producer_swapped_out_is_not_delivered_after_the_switch(
                                  standby=[HOT])},
     )  # fmt: skip
     core = NodeCore(spec, Sink, transport)
-    for name, port in core.ports.items():  # as the node runtime binds them
-        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+    bind_ports(transport, core.ports)  # as the node runtime binds them
     transport.core = core
     core.start()
     old = session.callbacks[ACTIVE]  # the old controller's subscription, as it was
@@ -152,7 +151,7 @@ def test_a_switch_to_the_hot_standby_and_back_declares_no_subscriber():
     """The switch runs under the node's lock (a reflex: on the node's own thread): it flips
     which key is held and declares nothing, so it never waits on Zenoh while Zenoh's threads
     wait on that lock (a reflex's switch once held the simulator for 160 ms that way)."""
-    from rra_agent.node.runtime import ZenohTransport
+    from rra_agent.node.runtime import ZenohTransport, bind_ports
 
     session = FakeSession()
     declared: list[str] = []
@@ -165,8 +164,7 @@ def test_a_switch_to_the_hot_standby_and_back_declares_no_subscriber():
                                  standby=[HOT])},
     )  # fmt: skip
     core = NodeCore(spec, Sink, transport)
-    for name, port in core.ports.items():
-        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+    bind_ports(transport, core.ports)
     transport.core = core
     core.start()
     assert sorted(declared) == sorted([ACTIVE, HOT])

@@ -12,7 +12,7 @@ from test_hot_standby import ACTIVE, HOT, FakeSession, Sink, sample
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.node.core import REPLAY_MAX_AGE, NodeCore
-from rra_agent.node.runtime import ZenohTransport, rehearse
+from rra_agent.node.runtime import ZenohTransport, bind_ports, rehearse
 
 
 def starting(now: list[float]) -> tuple[ZenohTransport, FakeSession, NodeCore]:
@@ -24,8 +24,7 @@ def starting(now: list[float]) -> tuple[ZenohTransport, FakeSession, NodeCore]:
         ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
                                  standby=[HOT])},
     )  # fmt: skip
-    for name, port in spec.ports.items():
-        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+    bind_ports(transport, spec.ports)
     core = NodeCore(spec, Sink, transport, monotonic=lambda: now[0])
     return transport, session, core
 

@@ -219,23 +219,39 @@ class ZenohActuator:
                 continue
             if not _running_already(result):
                 waiting.append(spec)
-        failed.update(
-            self._wait(
-                [s.name for s in waiting],
-                mark,
-                done=lambda n, evs: self._ready(n, evs, mark),
-                failed=lambda evs: next(
-                    (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
-                ),
-                timeout=self.start_timeout if timeout is None else timeout,
-                what="start",
-            )
-        )
+        failed.update(self._wait_started([s.name for s in waiting], mark, timeout))
         trace.mark("engine:started", ",".join(s.name for s in specs))
         if failed:
             self._abandon([s for s in specs if s.name in failed])
             first = next(iter(failed.items()))
             raise StepFailed(f"start {first[0]}: {first[1]}", failed)
+
+    def _wait_started(
+        self, names: list[str], mark: int, timeout: float | None = None
+    ) -> dict[str, str]:
+        """Wait until each node started after ``mark`` is ready (`_ready`), or failed (its
+        host agent's BACKOFF, FATAL or EXITED); those that did not make it, and why."""
+        return self._wait(
+            names,
+            mark,
+            done=lambda n, evs: self._ready(n, evs, mark),
+            failed=lambda evs: next(
+                (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
+            ),
+            timeout=self.start_timeout if timeout is None else timeout,
+            what="start",
+        )
+
+    def _wait_stopped(self, names: list[str], mark: int) -> dict[str, str]:
+        """Wait until each node stopped after ``mark`` has ended; those that did not."""
+        return self._wait(
+            names,
+            mark,
+            done=lambda n, evs: any(e.state in TERMINAL for e in evs),
+            failed=lambda evs: None,
+            timeout=self.stop_timeout,
+            what="stop",
+        )
 
     def _ready(self, node: str, evs: list[m.NodeState], mark: int) -> bool:
         """A node started after ``mark``: its token, declared once its declarations and
@@ -267,16 +283,7 @@ class ZenohActuator:
                 continue
             if not (isinstance(result, dict) and result.get("already")):
                 waiting.append(spec)
-        failed.update(
-            self._wait(
-                [s.name for s in waiting],
-                mark,
-                done=lambda n, evs: any(e.state in TERMINAL for e in evs),
-                failed=lambda evs: None,
-                timeout=self.stop_timeout,
-                what="stop",
-            )
-        )
+        failed.update(self._wait_stopped([s.name for s in waiting], mark))
         trace.mark("engine:stopped", ",".join(s.name for s in specs))
         if failed:
             first = next(iter(failed.items()))
@@ -323,27 +330,10 @@ class ZenohActuator:
     ) -> dict[str, str]:
         """Wait for each old node's end, then for each new one's readiness (but those
         ``running`` already)."""
-        failed = self._wait(
-            [o.name for o, _ in sent],
-            mark,
-            done=lambda n, evs: any(e.state in TERMINAL for e in evs),
-            failed=lambda evs: None,
-            timeout=self.stop_timeout,
-            what="stop",
-        )
+        failed = self._wait_stopped([o.name for o, _ in sent], mark)
         trace.mark("engine:stopped", ",".join(o.name for o, _ in sent))
-        failed.update(
-            self._wait(
-                [n.name for o, n in sent if o.name not in failed and n.name not in running],
-                mark,
-                done=lambda n, evs: self._ready(n, evs, mark),
-                failed=lambda evs: next(
-                    (e for e in evs if e.state in ("BACKOFF", "FATAL", "EXITED")), None
-                ),
-                timeout=self.start_timeout,
-                what="start",
-            )
-        )
+        news = [n.name for o, n in sent if o.name not in failed and n.name not in running]
+        failed.update(self._wait_started(news, mark))
         trace.mark("engine:started", ",".join(n.name for _, n in sent))
         return failed
 

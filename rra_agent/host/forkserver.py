@@ -294,8 +294,9 @@ def _serve_requests(
             while len(spares) < wanted and now >= refill:
                 spares.append(_spare([requests, out], host_pid, spares, held, preopen))
         due = branch.due(now) if branch is not None else None
-        if len(spares) < wanted:
-            due = max(0.0, min(due if due is not None else refill - now, refill - now))
+        if len(spares) < wanted:  # wake for the refill too
+            wait = max(0.0, refill - now)
+            due = wait if due is None else min(due, wait)
         if not select.select([requests], [], [], due)[0]:
             if branch is not None and branch.tick(time.monotonic()):
                 held[:] = []

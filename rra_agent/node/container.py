@@ -50,6 +50,7 @@ from rra_agent.node.core import NodeCore
 from rra_agent.node.loading import load_node_class
 from rra_agent.node.runtime import (
     ZenohTransport,
+    bind_ports,
     control_callback,
     must_wake,
     reflex_reporter,
@@ -230,8 +231,7 @@ class ContainerRuntime:
                 max_data=self.bus.max_data_bytes,
             )  # fmt: skip
             core.on_reflex = reflex_reporter(self.session, self.keys.reflex(spec.name))
-            for name, port in core.ports.items():
-                transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+            bind_ports(transport, core.ports)
             queryable = self.session.declare_queryable(
                 self.keys.node_ctl(spec.name), control_callback(core, self._wake)
             )

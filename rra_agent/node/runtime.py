@@ -32,7 +32,7 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import msgspec
@@ -228,6 +228,12 @@ class ZenohTransport:
         return callback
 
 
+def bind_ports(transport: Any, ports: Mapping[str, m.PortSpec]) -> None:
+    """Bind every port of a node to its keys (and a subscriber port to its standby keys)."""
+    for name, port in ports.items():
+        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+
+
 def rehearse(session: zenoh.Session, tag: str, bus: BusConfig) -> None:
     """Run what a node runs as it starts, up to its own code, on a throwaway spec and keys
     ``rra/_spare/<tag>/...``: the spec's decoding, the runtime's set-up, the declarations of
@@ -246,8 +252,7 @@ def rehearse(session: zenoh.Session, tag: str, bus: BusConfig) -> None:
     runtime = NodeRuntime(spec, Node, bus)
     runtime.close_wakeup()
     transport = ZenohTransport(session)
-    for name, port in spec.ports.items():
-        transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+    bind_ports(transport, spec.ports)
     transport.close()
     session.declare_queryable(f"{base}/ctl", lambda query: None).undeclare()
     session.liveliness().declare_token(f"{base}/alive").undeclare()
@@ -303,8 +308,7 @@ class NodeRuntime:
             transport = self.make_transport(session)
             # The data ports first: declared before the node's code runs (the core delivers
             # nothing until `on_start` has returned), so that a gated start has them ready.
-            for name, port in self.spec.ports.items():
-                transport.rebind(name, port.direction, list(port.keys), list(port.standby))
+            bind_ports(transport, self.spec.ports)
             if self.gate is not None and not self._pass_gate():
                 return 0
             core = self.make_core(transport)

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any, TypeVar
 
 import msgspec
 import zenoh
@@ -35,6 +35,25 @@ from rra_agent.errors import RraError
 
 _REPLY = m.Codec[m.Reply](m.Reply)
 _ENC = m.Codec[Any](Any)
+T = TypeVar("T")
+
+
+def decoded(replies: Iterable[zenoh.Reply], codec: m.Codec[T]) -> Iterator[T]:
+    """The answers of a get that decode with ``codec``, in order: error replies and answers
+    that do not decode (a forged queryable's, a process of another version) are skipped."""
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            answer = codec.decode(reply.ok.payload.to_bytes())
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            continue
+        yield answer
+
+
+def oks(replies: Iterable[zenoh.Reply]) -> Iterator[m.Ok]:
+    """The `Ok` answers of a get (`Err`s, error replies and malformed answers skipped)."""
+    return (a for a in decoded(replies, _REPLY) if isinstance(a, m.Ok))
 
 
 #: How long a tool waits for the hub to answer which systems run there, once connected. The

@@ -36,7 +36,7 @@ import zenoh
 
 from rra_agent import trace
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply
+from rra_agent.bus.client import BusClient, NoReply, oks
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.session import CONTROL_QOS
 from rra_agent.engines.executor import Ctl, StepFailed, apply_request
@@ -179,14 +179,8 @@ class ZenohActuator:
         handlers = [self.session.get(k, payload=payload, timeout=timeout) for k in keys]
         highest = fence.epoch
         for handler in handlers:
-            for reply in handler:
-                if reply.ok is None:
-                    continue
-                try:
-                    answer = _REPLY.decode(reply.ok.payload.to_bytes())
-                except (msgspec.DecodeError, msgspec.ValidationError):
-                    continue
-                if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+            for answer in oks(handler):
+                if isinstance(answer.result, dict):
                     seen = answer.result.get("fence") or [0]
                     highest = max(highest, int(seen[0]))
         return highest

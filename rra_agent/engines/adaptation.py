@@ -38,6 +38,7 @@ measurements costs one evaluation per main-loop turn, not one per sample.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -48,6 +49,7 @@ import zenoh
 
 from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import decoded, oks
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Refused, receive
 from rra_agent.core.adaptation import AdaptationEngine, TickResult
@@ -75,7 +77,6 @@ OVERRIDES_KEPT = 256
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
-_REPLY = m.Codec[m.Reply](m.Reply)
 _ANY = m.Codec[Any](Any)
 
 
@@ -237,17 +238,12 @@ class AdaptationEngineProcess(EngineProcess[tuple[Deployment, AdaptationEngine]]
         assert self.session is not None
         deadline = time.monotonic() + self.resume_timeout
         while not self.loop.stopping:
-            for reply in self.session.get(
+            for answer in oks(self.session.get(
                 self.keys.engine_ctl("resolution"), payload=_ANY.encode(m.GetState()), timeout=1.0
-            ):
-                if reply.ok is None:
-                    continue
-                try:
-                    answer = _REPLY.decode(reply.ok.payload.to_bytes())
-                    if isinstance(answer, m.Ok) and answer.result:
+            )):  # fmt: skip
+                if answer.result:
+                    with contextlib.suppress(msgspec.ValidationError):
                         return msgspec.convert(answer.result, m.EngineState)
-                except (msgspec.DecodeError, msgspec.ValidationError):
-                    continue
             if time.monotonic() > deadline:
                 print(f"rra {self.name}: no Run-time Resolution Engine answered", file=sys.stderr)
                 return None
@@ -256,13 +252,7 @@ class AdaptationEngineProcess(EngineProcess[tuple[Deployment, AdaptationEngine]]
 
     def _ask_measurements(self) -> None:
         assert self.session is not None
-        for reply in self.session.get(self.keys.ctx_all, timeout=1.0):
-            if reply.ok is None:
-                continue
-            try:
-                msg = _CTX.decode(reply.ok.payload.to_bytes())
-            except (msgspec.DecodeError, msgspec.ValidationError):
-                continue
+        for msg in decoded(self.session.get(self.keys.ctx_all, timeout=1.0), _CTX):
             if measurement_problem(self.declared.get(msg.name), msg.value) is not None:
                 continue  # not a monitor's answer
             with self.lock:

@@ -17,6 +17,7 @@ import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import oks
 from rra_agent.bus.keys import Keys
 from rra_agent.deployment import Deployment, deploy_package
 from rra_agent.errors import RraError
@@ -24,7 +25,6 @@ from rra_agent.package.bundle import ModelBundle, load_bundle, write_bundle
 from rra_agent.record.run import models_folder, read_models
 
 _REQ = m.Codec[m.EngineRequest](m.EngineRequest)
-_REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def deploy_bundle(bundle: ModelBundle, current: Deployment) -> Deployment:
@@ -56,17 +56,11 @@ def find_bundle(
         return read_models(run_dir, digest)
     if session is None:
         raise RraError(f"models {digest}: not in the record and no bus to ask")
-    for reply in session.get(
+    for answer in oks(session.get(
         keys.engine_ctl("resolution"), payload=_REQ.encode(m.GetModels(digest=digest)),
         timeout=2.0,
-    ):  # fmt: skip
-        if reply.ok is None:
-            continue
-        try:
-            answer = _REPLY.decode(reply.ok.payload.to_bytes())
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            continue
-        if isinstance(answer, m.Ok) and answer.result:
+    )):  # fmt: skip
+        if answer.result:
             try:
                 bundle = msgspec.convert(answer.result, ModelBundle)
             except msgspec.ValidationError:

@@ -59,6 +59,7 @@ import zenoh
 
 from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import oks
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import data_limit
 from rra_agent.bus.keys import check_topic
@@ -95,7 +96,6 @@ _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
 _INJ = m.Codec[m.Injection](m.Injection)
 _REQ = m.Codec[m.EngineRequest](m.EngineRequest)
-_REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def measurement_functions(dep: Deployment) -> dict[str, Callable[..., Any]]:
@@ -609,17 +609,11 @@ class ContextMonitorProcess(EngineProcess[tuple[Deployment, ContextMonitor]]):
     def starting(self) -> None:
         """A replica started after a reload runs the models the system runs."""
         assert self.session is not None
-        for reply in self.session.get(self.keys.engine_ctl("resolution"),
-                                      payload=_REQ.encode(m.GetState()), timeout=1.0):  # fmt: skip
-            if reply.ok is None:
-                continue
-            try:
-                answer = _REPLY.decode(reply.ok.payload.to_bytes())
-                if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
-                    self.follow_models(str(answer.result.get("models", "")))
-                    return
-            except (msgspec.DecodeError, msgspec.ValidationError):
-                continue
+        key = self.keys.engine_ctl("resolution")
+        for answer in oks(self.session.get(key, payload=_REQ.encode(m.GetState()), timeout=1.0)):
+            if isinstance(answer.result, dict):
+                self.follow_models(str(answer.result.get("models", "")))
+                return
 
     def load_models(self, bundle: ModelBundle) -> tuple[Deployment, ContextMonitor]:
         """These models and their core, their measurement functions imported."""

@@ -19,6 +19,7 @@ import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import decoded
 from rra_agent.bus.keys import Keys
 from rra_agent.deployment import Deployment
 from rra_agent.model_changes import Running
@@ -78,14 +79,7 @@ def commit_hosts(
 
 
 def _first(handler: Any) -> m.Reply | None:
-    for reply in handler:
-        if reply.ok is None:
-            continue
-        try:
-            return _REPLY.decode(reply.ok.payload.to_bytes())
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            continue
-    return None
+    return next(decoded(handler, _REPLY), None)
 
 
 def running_view(

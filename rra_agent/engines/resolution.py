@@ -33,6 +33,7 @@ agents own them. Status (selection, CV values, desired and observed nodes) is se
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import threading
@@ -46,6 +47,7 @@ import zenoh
 
 from rra_agent import _compat, trace
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import oks
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Refused, receive
 from rra_agent.core import resolution as r
@@ -1347,19 +1349,14 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
     def starting(self) -> None:
         """Learn the current leader's state before the election (a standby that starts)."""
         assert self.session is not None
-        for reply in self.session.get(
+        for answer in oks(self.session.get(
             self.keys.engine_ctl(NAME),
             payload=m.Codec(m.EngineRequest).encode(m.GetState()),
             timeout=1.0,
-        ):
-            if reply.ok is None:
-                continue
-            try:
-                answer = m.Codec[m.Reply](m.Reply).decode(reply.ok.payload.to_bytes())
-                if isinstance(answer, m.Ok) and answer.result:
+        )):  # fmt: skip
+            if answer.result:
+                with contextlib.suppress(msgspec.ValidationError):
                     self._mirror(msgspec.convert(answer.result, m.EngineState), trusted=True)
-            except (msgspec.DecodeError, msgspec.ValidationError):
-                continue
 
     def epoch_floor(self) -> int:
         """Above the epoch of the leader this replica mirrors, or of the saved state."""

@@ -45,6 +45,7 @@ import zenoh
 from rra_agent import text, trace
 from rra_agent.bus import counters
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import oks
 from rra_agent.bus.config import BusConfig, explain_open_failure, node_zid
 from rra_agent.bus.counters import Counters, RateLimitedLog, receive, topic_limits
 from rra_agent.bus.keys import Keys, check_chunk
@@ -513,11 +514,10 @@ class HostAgent:
         self._rerun_known = True  # one try: a start never waits on this twice
         from rra_agent.viz.rerun_log import ENV_VAR, RerunConfig
 
-        for reply in self.session.get(
+        for answer in oks(self.session.get(
             self.keys.engine_ctl("resolution"), payload=_ANY.encode(m.Status()), timeout=1.0
-        ):
-            answer = _REPLY.decode(reply.ok.payload.to_bytes()) if reply.ok else None
-            if not isinstance(answer, m.Ok) or not isinstance(answer.result, dict):
+        )):  # fmt: skip
+            if not isinstance(answer.result, dict):
                 continue
             try:
                 cfg = msgspec.convert(answer.result.get("rerun") or {}, RerunConfig)

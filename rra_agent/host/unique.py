@@ -31,10 +31,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import msgspec
 import zenoh
 
 from rra_agent.bus import messages as m
+from rra_agent.bus.client import oks
 from rra_agent.bus.config import BusConfig, accepts_tcp
 from rra_agent.bus.keys import ROOT, Keys
 
@@ -52,7 +52,6 @@ ANSWER = 1.0
 #: answers at once unless its machine is busy (1 s was too short once, on two loaded cores).
 PING = 2.0
 _ANY = m.Codec[Any](Any)
-_REPLY = m.Codec[m.Reply](m.Reply)
 
 
 def wait_linked(session: zenoh.Session, bus: BusConfig, timeout: float = LINK_WAIT) -> int:
@@ -102,14 +101,9 @@ def tokens(session: zenoh.Session, key: str) -> list[str]:
 
 def agent_identity(session: zenoh.Session, keys: Keys, host: str) -> dict[str, Any]:
     """A host agent's answer to a Ping (pid, host, router endpoints); {} if none."""
-    for reply in session.get(keys.host_ctl(host), payload=_ANY.encode(m.Ping()), timeout=PING):
-        if reply.ok is None:
-            continue
-        try:
-            answer = _REPLY.decode(reply.ok.payload.to_bytes())
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            continue
-        if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+    for answer in oks(session.get(keys.host_ctl(host), payload=_ANY.encode(m.Ping()),
+                                  timeout=PING)):  # fmt: skip
+        if isinstance(answer.result, dict):
             return answer.result
     return {}
 

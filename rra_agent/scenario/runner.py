@@ -50,7 +50,7 @@ import zenoh
 from rra_agent import text
 from rra_agent.bus import failure
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, NoReply, wait_until
+from rra_agent.bus.client import BusClient, NoReply, decoded, wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.bus.session import NoPeer
@@ -519,12 +519,8 @@ class _Run:
         published before the runner listened and not since (a host's reachability is
         published on change only)."""
         latest: dict[str, m.Measurement] = {}
-        for reply in client.session.get(client.keys.ctx_all, timeout=1.0):
-            if reply.ok is None:
-                continue
-            with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
-                msg = _CTX.decode(reply.ok.payload.to_bytes())
-                latest.setdefault(msg.name, msg)
+        for msg in decoded(client.session.get(client.keys.ctx_all, timeout=1.0), _CTX):
+            latest.setdefault(msg.name, msg)
         with self.rec.lock:
             seen = {ms.name for ms in self.rec.measurements}
             self.rec.measurements += [ms for n, ms in latest.items() if n not in seen]

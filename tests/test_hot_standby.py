@@ -39,12 +39,17 @@ class Bindings:
         pass
 
 
-def sink(now: list[float]) -> tuple[NodeCore, Bindings]:
-    spec = m.NodeSpec(
+def sim_spec() -> m.NodeSpec:
+    """A simulator's command input: the active controller's key, the hot standby's held."""
+    return m.NodeSpec(
         system="t", name="sim", host="h", implementation=f"{__name__}.Sink",
         ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
                                  standby=[HOT])},
     )  # fmt: skip
+
+
+def sink(now: list[float]) -> tuple[NodeCore, Bindings]:
+    spec = sim_spec()
     transport = Bindings()
     core = NodeCore(spec, Sink, transport, monotonic=lambda: now[0])
     core.start()
@@ -125,11 +130,7 @@ def test_a_sample_of_the_producer_swapped_out_is_not_delivered_after_the_switch(
 
     session = FakeSession()
     transport = ZenohTransport(session)  # type: ignore[arg-type]
-    spec = m.NodeSpec(
-        system="t", name="sim", host="h", implementation=f"{__name__}.Sink",
-        ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
-                                 standby=[HOT])},
-    )  # fmt: skip
+    spec = sim_spec()
     core = NodeCore(spec, Sink, transport)
     bind_ports(transport, core.ports)  # as the node runtime binds them
     transport.core = core
@@ -158,11 +159,7 @@ def test_a_switch_to_the_hot_standby_and_back_declares_no_subscriber():
     declare = session.declare_subscriber
     session.declare_subscriber = lambda key, cb: (declared.append(key), declare(key, cb))[1]  # type: ignore[method-assign]
     transport = ZenohTransport(session)  # type: ignore[arg-type]
-    spec = m.NodeSpec(
-        system="t", name="sim", host="h", implementation=f"{__name__}.Sink",
-        ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
-                                 standby=[HOT])},
-    )  # fmt: skip
+    spec = sim_spec()
     core = NodeCore(spec, Sink, transport)
     bind_ports(transport, core.ports)
     transport.core = core

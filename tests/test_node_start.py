@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from test_hot_standby import ACTIVE, HOT, FakeSession, Sink, sample
+from test_hot_standby import ACTIVE, HOT, FakeSession, Sink, sample, sim_spec
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
@@ -19,11 +19,7 @@ def starting(now: list[float]) -> tuple[ZenohTransport, FakeSession, NodeCore]:
     """A node bound as the runtime binds it (ports first), its code not started yet."""
     session = FakeSession()
     transport = ZenohTransport(session, monotonic=lambda: now[0])  # type: ignore[arg-type]
-    spec = m.NodeSpec(
-        system="t", name="sim", host="h", implementation="test_hot_standby.Sink",
-        ports={"cmd": m.PortSpec(direction="subscribe", type="Cmd", keys=[ACTIVE],
-                                 standby=[HOT])},
-    )  # fmt: skip
+    spec = sim_spec()
     bind_ports(transport, spec.ports)
     core = NodeCore(spec, Sink, transport, monotonic=lambda: now[0])
     return transport, session, core

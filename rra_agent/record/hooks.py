@@ -57,11 +57,24 @@ def open_writer(
     return writer
 
 
-class AdaptationRecorder:
-    """The Adaptation Engine's calls on its core (see the module doc)."""
+class _Recorder:
+    """What every engine's record has: its leadership and the models it runs."""
 
     def __init__(self, writer: f.RecordWriter) -> None:
         self.writer = writer
+
+    def lead(self, leading: bool, fence: m.Fence | None) -> None:
+        self.writer.write(f.Lead(stamp=time.time(), leading=leading, fence=fence))
+
+    def reload(self, models: str, previous: str) -> None:
+        self.writer.write(f.Reload(stamp=time.time(), models=models, previous=previous))
+
+
+class AdaptationRecorder(_Recorder):
+    """The Adaptation Engine's calls on its core (see the module doc)."""
+
+    def __init__(self, writer: f.RecordWriter) -> None:
+        super().__init__(writer)
         #: The measurements of the previous tick (name -> the (value, stamp) tuple).
         self._previous: dict[str, tuple[Any, float]] = {}
         #: The newest measurement received of each name, and when (Zenoh's thread).
@@ -118,34 +131,21 @@ class AdaptationRecorder:
     def avail(self, unavailable: list[m.Unavailable]) -> None:
         self.writer.write(f.Avail(stamp=time.time(), unavailable=list(unavailable)))
 
-    def lead(self, leading: bool, fence: m.Fence | None) -> None:
-        self.writer.write(f.Lead(stamp=time.time(), leading=leading, fence=fence))
-
-    def reload(self, models: str, previous: str) -> None:
-        self.writer.write(f.Reload(stamp=time.time(), models=models, previous=previous))
 
 
-class MonitorRecorder:
+class MonitorRecorder(_Recorder):
     """The Context Monitor leader's source samples (see the module doc)."""
-
-    def __init__(self, writer: f.RecordWriter) -> None:
-        self.writer = writer
 
     def sample(self, source: str, data: bytes, stamp: float) -> None:
         self.writer.write(f.Sample(source=source, data=data, stamp=stamp, at=time.time()))
 
-    def lead(self, leading: bool, fence: m.Fence | None) -> None:
-        self.writer.write(f.Lead(stamp=time.time(), leading=leading, fence=fence))
-
-    def reload(self, models: str, previous: str) -> None:
-        self.writer.write(f.Reload(stamp=time.time(), models=models, previous=previous))
 
 
-class ResolutionRecorder:
+class ResolutionRecorder(_Recorder):
     """The Run-time Resolution Engine leader's states and the operators' commands."""
 
     def __init__(self, writer: f.RecordWriter) -> None:
-        self.writer = writer
+        super().__init__(writer)
         self._version: tuple[int, str, str, int] | None = None
 
     def state(self, state: m.EngineState) -> None:
@@ -158,9 +158,3 @@ class ResolutionRecorder:
     def command(self, kind: str, args: Mapping[str, Any], operator: str, outcome: str) -> None:
         self.writer.write(f.Command(stamp=time.time(), kind=kind, args=dict(args),
                                     operator=operator, outcome=outcome))  # fmt: skip
-
-    def lead(self, leading: bool, fence: m.Fence | None) -> None:
-        self.writer.write(f.Lead(stamp=time.time(), leading=leading, fence=fence))
-
-    def reload(self, models: str, previous: str) -> None:
-        self.writer.write(f.Reload(stamp=time.time(), models=models, previous=previous))

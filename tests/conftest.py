@@ -331,6 +331,15 @@ def package_copy(tmp_path: Path) -> Path:
     return pkg
 
 
+def edit_text(pkg: Path, file: str, old: str, new: str) -> str:
+    """Replace the one occurrence of ``old`` in ``pkg/file`` (a model edited by hand)."""
+    text = (pkg / file).read_text()
+    assert text.count(old) == 1, old
+    text = text.replace(old, new)
+    (pkg / file).write_text(text)
+    return text
+
+
 def edit_yaml(path: Path, fn) -> None:
     data = yaml.safe_load(path.read_text())
     fn(data)

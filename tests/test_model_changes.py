@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,8 @@ from rra_agent.errors import LocatedError, RraError
 from rra_agent.model_changes import Running, compare
 from rra_agent.package.bundle import ModelBundle, bundle_of, digest_of
 from rra_agent.package.loader import load_package
-from tests.conftest import position
+from tests.conftest import edit_text as edit
+from tests.conftest import package_copy, position
 
 ROOT = Path(__file__).resolve().parents[1]
 RELAY = ROOT / "tests" / "data" / "relay_system"
@@ -29,33 +29,19 @@ RUNNING = Running(
 )
 
 
-def copy(tmp_path: Path) -> Path:
-    pkg = tmp_path / "pkg"
-    shutil.copytree(RELAY, pkg)
-    return pkg
-
-
-def edit(pkg: Path, file: str, old: str, new: str) -> str:
-    text = (pkg / file).read_text()
-    assert text.count(old) == 1, old
-    text = text.replace(old, new)
-    (pkg / file).write_text(text)
-    return text
-
-
 def headlines(errors: list[RraError]) -> list[str]:
     return [e.headline if isinstance(e, LocatedError) else str(e) for e in errors]
 
 
 def test_a_rule_edit_is_allowed_and_named(tmp_path: Path) -> None:
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     edit(pkg, "adaptation.rra", "cdm.Level > 5", "cdm.Level > 2")
     out = compare(deploy(RELAY), deploy(pkg), RUNNING)
     assert out.allowed and out.changes == ["rule PathRule: changed"]
 
 
 def test_comments_and_layout_change_nothing(tmp_path: Path) -> None:
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     edit(pkg, "adaptation.rra", "rule PathRule", "// a comment\n\nrule PathRule")
     edit(pkg, "system.yaml", "components:", "# the components\ncomponents:")
     out = compare(deploy(RELAY), deploy(pkg), RUNNING)
@@ -63,7 +49,7 @@ def test_comments_and_layout_change_nothing(tmp_path: Path) -> None:
 
 
 def test_what_cannot_change_live_is_refused_where_it_is_written(tmp_path: Path) -> None:
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     edit(pkg, "measurements.yaml", "data_types:\n", "data_types:\n  - {name: Other, fields: "
          "{value: float}}\n")  # fmt: skip
     text = edit(pkg, "system.yaml", "offset: {type: float, value: 0.0}\n    ports:\n      - {name"
@@ -85,7 +71,7 @@ def test_what_cannot_change_live_is_refused_where_it_is_written(tmp_path: Path) 
 
 
 def test_removing_a_running_component_is_refused(tmp_path: Path) -> None:
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     text = edit(pkg, "system.yaml", "  - name: direct\n    implementation: rra_agent.nodes."
                 "generic.Relay\n    optional: true\n    binding: runtime\n    parameters:\n"
                 "      offset: {type: float, value: 0.0}\n    ports:\n      - {name: in, "
@@ -110,7 +96,7 @@ def test_removing_a_running_component_is_refused(tmp_path: Path) -> None:
 
 
 def test_a_changed_deployment_time_selection_is_refused(tmp_path: Path) -> None:
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     extra = "        mandatory\n            Extra\n"
     text = edit(pkg, "features.uvl", "        mandatory\n", extra)
     out = compare(deploy(RELAY), deploy(pkg), RUNNING)
@@ -121,7 +107,7 @@ def test_a_changed_deployment_time_selection_is_refused(tmp_path: Path) -> None:
 
 
 def test_a_digest_names_the_models_not_their_folder(tmp_path: Path) -> None:
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     a, b = bundle_of(load_package(RELAY)), bundle_of(load_package(pkg))
     assert a.digest == b.digest == digest_of(a.files) and len(a.digest) == 16
     edit(pkg, "adaptation.rra", "> 5", "> 2")
@@ -139,7 +125,7 @@ def test_carry_over_keeps_the_selection_and_the_operators_choices(tmp_path: Path
     old.tick(1.0, {"Level": (7.0, 1.0)})
     assert "Filtered" in old.selection and old.cv == {"Gain": 7.0}
     old.force({"Filtered": "on"})
-    pkg = copy(tmp_path)
+    pkg = package_copy(tmp_path)
     edit(pkg, "adaptation.rra", "> 5", "> 8")
     new_dep = deploy(pkg)
     assert new_dep.package.adaptation is not None

@@ -25,6 +25,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, gather, wait_until
 from rra_agent.record.replay import open_run, replay
 from tests.conftest import RELAY, RELAY_KEYS, listening, position
+from tests.conftest import edit_text as edit
 
 ROOT = Path(__file__).resolve().parents[1]
 QUADCOPTER = ROOT / "scenarios" / "quadcopter"
@@ -38,14 +39,6 @@ def copy(src: Path, tmp_path: Path, name: str = "edited") -> Path:
     pkg = tmp_path / name
     shutil.copytree(src, pkg, ignore=shutil.ignore_patterns("__pycache__", "*.scenario.yaml"))
     return pkg
-
-
-def edit(pkg: Path, file: str, old: str, new: str) -> str:
-    text = (pkg / file).read_text()
-    assert text.count(old) == 1, old
-    text = text.replace(old, new)
-    (pkg / file).write_text(text)
-    return text
 
 
 def reload(bus: Any, *args: str) -> subprocess.CompletedProcess[str]:

@@ -94,12 +94,17 @@ def test_records_are_read_back_as_written(tmp_path: Path) -> None:
     assert got.records[1].cv["G"] == 0.1 + 0.2 and not got.torn  # floats exact, inf kept
 
 
-def test_a_torn_last_record_is_the_end_of_a_killed_writer(tmp_path: Path) -> None:
-    w = f.RecordWriter(tmp_path / "x.rec")
+def two_records(path: Path) -> None:
+    """A record file of a start and a leadership, closed."""
+    w = f.RecordWriter(path)
     w.write(f.Start(process="p", role="r", pid=1, stamp=1.0, system="s", models="m",
                     deployment=[]))  # fmt: skip
     w.write(f.Lead(stamp=2.0, leading=True))
     w.close()
+
+
+def test_a_torn_last_record_is_the_end_of_a_killed_writer(tmp_path: Path) -> None:
+    two_records(tmp_path / "x.rec")
     data = (tmp_path / "x.rec").read_bytes()
     (tmp_path / "x.rec").write_bytes(data[:-3])
     got = f.read_file(tmp_path / "x.rec")
@@ -107,11 +112,7 @@ def test_a_torn_last_record_is_the_end_of_a_killed_writer(tmp_path: Path) -> Non
 
 
 def test_a_changed_byte_is_damage_named_by_file_and_offset(tmp_path: Path) -> None:
-    w = f.RecordWriter(tmp_path / "x.rec")
-    w.write(f.Start(process="p", role="r", pid=1, stamp=1.0, system="s", models="m",
-                    deployment=[]))  # fmt: skip
-    w.write(f.Lead(stamp=2.0, leading=True))
-    w.close()
+    two_records(tmp_path / "x.rec")
     data = bytearray((tmp_path / "x.rec").read_bytes())
     data[-2] ^= 0xFF
     (tmp_path / "x.rec").write_bytes(bytes(data))

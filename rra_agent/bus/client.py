@@ -428,21 +428,15 @@ def process_stats(
 ) -> dict[str, dict[str, Any]]:
     """Every process's counters (`ProcessStats`) by name: one query to all at once."""
     out: dict[str, dict[str, Any]] = {}
-    codec = m.Codec[m.Reply](m.Reply)
     for key in (f"{client.keys.prefix}/{family}/*/ctl" for family in families):
-        for reply in client.session.get(
+        replies = client.session.get(
             key,
-            payload=m.Codec[Any](Any).encode(m.Stats()),
+            payload=_ENC.encode(m.Stats()),
             timeout=timeout,
             consolidation=zenoh.ConsolidationMode.NONE,
-        ):
-            if reply.ok is None:
-                continue
-            try:
-                answer = codec.decode(reply.ok.payload.to_bytes())
-            except (msgspec.DecodeError, msgspec.ValidationError):
-                continue
-            if isinstance(answer, m.Ok) and isinstance(answer.result, dict):
+        )
+        for answer in oks(replies):
+            if isinstance(answer.result, dict):
                 stats = answer.result
                 out[f"{stats.get('role')}:{stats.get('name')}"] = stats
     return out

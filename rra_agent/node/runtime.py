@@ -139,6 +139,8 @@ class ZenohTransport:
     def _hand(
         self, core: NodeCore, port: str, key: str, payload: bytes, stamp: float | None
     ) -> None:
+        """A sample to the node: delivered, or held while ``key`` is a standby key of
+        ``port`` (one no longer bound has no flag: the core refuses and counts it)."""
         if not self.held.get((port, key), False):
             core.deliver(port, payload, stamp, key)
         else:
@@ -208,22 +210,19 @@ class ZenohTransport:
         `NodeCore.hold` (`held`); one still on its way once ``key`` is unbound is refused
         and counted by `NodeCore.deliver` (``unselected``)."""
         unpack = _STAMP.unpack
-        flags = self.held
 
         def callback(sample: zenoh.Sample) -> None:
             att = sample.attachment
             stamp = unpack(att.to_bytes())[0] if att is not None and len(att) == 8 else None
+            payload = sample.payload.to_bytes()
             core = self.core
             if core is None:
-                if self._keep_early(port, key, sample.payload.to_bytes(), stamp):
+                if self._keep_early(port, key, payload, stamp):
                     return
                 core = self.core
                 if core is None:  # closed
                     return
-            if not flags.get((port, key), False):
-                core.deliver(port, sample.payload.to_bytes(), stamp, key)
-            else:
-                core.hold(port, key, sample.payload.to_bytes(), stamp)
+            self._hand(core, port, key, payload, stamp)
 
         return callback
 

@@ -159,10 +159,11 @@ class HostAgent:
         #: A host other than the first learns the run's Rerun configuration from the engine.
         self._rerun_known = hub
         #: `ReplaceNode`s under way: the node stopping -> its replacement, which starts
-        #: once it is gone (spawned gated, or not yet spawned if in ``_deferred``).
-        self._after: dict[str, m.NodeSpec] = {}
-        self._deferred: set[str] = set()
-        self.local.gate_for = lambda spec: any(s.name == spec.name for s in self._after.values())
+        #: once it is gone, and whether it was spawned already (gated) or waits here.
+        self._after: dict[str, tuple[m.NodeSpec, bool]] = {}
+        self.local.gate_for = lambda spec: any(
+            s.name == spec.name and spawned for s, spawned in self._after.values()
+        )
         self.log_dir = Path(log_dir)
 
     def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
@@ -579,10 +580,10 @@ class HostAgent:
             return stopped
         if not self._live(old):
             return self._start(spec)
-        self._after[old] = spec
         gateable = spec.name != old and self.catalog.container_of(spec.name) is None
-        if not (gateable and self.local.can_gate(spec)):
-            self._deferred.add(old)
+        gated = gateable and self.local.can_gate(spec)
+        self._after[old] = (spec, gated)
+        if not gated:
             return m.Ok(result={"state": State.STOPPED.value, "after": old})
         started = self._start(spec)  # gated: `self.local.gate_for` says so
         if isinstance(started, m.Err):
@@ -600,11 +601,10 @@ class HostAgent:
     def _release(self, old: str) -> None:
         """``old`` is gone: its replacement's code may run (its gate opens), or the
         replacement is started now if it was not spawned yet."""
-        spec = self._after.pop(old)
-        if old not in self._deferred:
+        spec, spawned = self._after.pop(old)
+        if spawned:
             self.local.open_gate(spec.name)
             return
-        self._deferred.discard(old)
 
         def start() -> None:
             if self.stopping:

@@ -767,31 +767,15 @@ class Executor:
             for w in cold
         ]
         t0 = self.clock()
-        try:
-            self.actuator.replace([(o, n) for o, n, _ in pairs], self.replacement.stop_deadline)
-            failed: dict[str, str] = {}
-        except StepFailed as e:
-            every = {s.name: str(e) for o, n, _ in pairs for s in (o, n)}
-            failed = e.nodes if e.nodes is not None else every
-        seconds = self.clock() - t0
-        olds = {o.name for o, _, _ in pairs}
-        _record(tx, "stop", [o for o, _, _ in pairs], _only(failed, olds), seconds)
-        _record(tx, "start", [n for _, n, _ in pairs], _only(failed, set(failed) - olds), seconds)
-        for old, new, unit in pairs:  # what was done first, so a failed unit undoes it all
-            for spec, action, done, undo in (
-                (old, "stop", self._stopped, self._unstop),
-                (new, "start", self._started, self._unstart),
-            ):
-                if spec.name in failed:
-                    break
-                done(spec)
-                tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
-        for old, new, unit in pairs:
-            for spec, action in ((old, "stop"), (new, "start")):
-                if spec.name in failed:
-                    why = failed[spec.name]
-                    tx.fail(unit, f"{action} {spec.name}: {why}", {spec.name: why})
-                    break
+        failed = _failed_by(
+            lambda: self.actuator.replace([(o, n) for o, n, _ in pairs],
+                                          self.replacement.stop_deadline),
+            [s.name for o, n, _ in pairs for s in (o, n)],
+        )  # fmt: skip
+        self._settle(tx, failed, self.clock() - t0, [
+            ("stop", [(o, u) for o, _, u in pairs], self._stopped, self._unstop),
+            ("start", [(n, u) for _, n, u in pairs], self._started, self._unstart),
+        ])  # fmt: skip
 
     def _batch(
         self,
@@ -808,20 +792,34 @@ class Executor:
         if not specs:
             return
         t0 = self.clock()
-        try:
-            call([s for s, _ in specs])
-            failed: dict[str, str] = {}
-        except StepFailed as e:
-            failed = e.nodes if e.nodes is not None else {s.name: str(e) for s, _ in specs}
-        _record(tx, action, [s for s, _ in specs], failed, self.clock() - t0)
-        for spec, unit in specs:
-            if spec.name not in failed:
-                done(spec)
-                tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
-        for spec, unit in specs:
-            if spec.name in failed:
-                why = failed[spec.name]
-                tx.fail(unit, f"{action} {spec.name}: {why}", {spec.name: why})
+        failed = _failed_by(lambda: call([s for s, _ in specs]), [s.name for s, _ in specs])
+        self._settle(tx, failed, self.clock() - t0, [(action, specs, done, undo)])
+
+    def _settle(
+        self,
+        tx: Transaction,
+        failed: Mapping[str, str],
+        seconds: float,
+        groups: list[tuple[str, list[tuple[NodeSpec, int]], Callable[[NodeSpec], None],
+                          Callable[[NodeSpec], None]]],
+    ) -> None:
+        """After one call to the actuator: each group's action recorded; each action that
+        was done is ``done`` and leaves its ``undo`` in its unit first; then each unit with
+        an action that failed (named in ``failed``) fails, undoing the unit's other actions,
+        those of this call included."""
+        for action, specs, _, _ in groups:
+            mine = {s.name: failed[s.name] for s, _ in specs if s.name in failed}
+            _record(tx, action, [s for s, _ in specs], mine, seconds)
+        for action, specs, done, undo in groups:
+            for spec, unit in specs:
+                if spec.name not in failed:
+                    done(spec)
+                    tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
+        for action, specs, _, _ in groups:
+            for spec, unit in specs:
+                if spec.name in failed:
+                    why = failed[spec.name]
+                    tx.fail(unit, f"{action} {spec.name}: {why}", {spec.name: why})
 
     def _control(self, tx: Transaction, action: str, batch: list[Ctl]) -> list[m.Reply]:
         """Send the batch; each successful request updates its node's spec and leaves its
@@ -868,8 +866,14 @@ def _record(
         tx.records.append(StepRecord(action, name, seconds, False, why))
 
 
-def _only(failed: Mapping[str, str], names: set[str]) -> dict[str, str]:
-    return {k: v for k, v in failed.items() if k in names}
+def _failed_by(call: Callable[[], None], names: list[str]) -> dict[str, str]:
+    """Run an actuator call; the nodes it names as failed, and why (all of ``names`` if it
+    names none)."""
+    try:
+        call()
+    except StepFailed as e:
+        return dict(e.nodes) if e.nodes is not None else {n: str(e) for n in names}
+    return {}
 
 
 def _launches(s: PlanStep) -> str | None:

@@ -15,6 +15,7 @@ action). A node that is not gated unblocks it at once (`unblock`).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 from collections.abc import Callable
@@ -47,10 +48,7 @@ def wait(stopping: Callable[[], bool]) -> bool:
         unblock()
 
 
-def open_gate(pid: int) -> bool:
-    """Let the gated node ``pid`` run its code (False: it is gone)."""
-    try:
+def open_gate(pid: int) -> None:
+    """Let the gated node ``pid`` run its code (nothing if it is gone)."""
+    with contextlib.suppress(ProcessLookupError):
         os.kill(pid, SIGNAL)
-    except ProcessLookupError:
-        return False
-    return True

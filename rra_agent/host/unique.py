@@ -48,6 +48,10 @@ SETTLE = 0.5
 CONFIRM = 0.1
 #: How long a liveliness query may take to be answered.
 ANSWER = 1.0
+#: How long a starting agent that sees another system's engine replicas keeps looking for the
+#: host that runs them (for the refusal's text): their member tokens and the liveliness
+#: tokens that name their host can reach this router in different batches.
+LOCATE = 1.0
 #: How long the running agent's answer to a Ping (for the refusal's text) is waited for: it
 #: answers at once unless its machine is busy (1 s was too short once, on two loaded cores).
 PING = 2.0
@@ -100,11 +104,16 @@ def tokens(session: zenoh.Session, key: str) -> list[str]:
 
 
 def agent_identity(session: zenoh.Session, keys: Keys, host: str) -> dict[str, Any]:
-    """A host agent's answer to a Ping (pid, host, router endpoints); {} if none."""
-    for answer in oks(session.get(keys.host_ctl(host), payload=_ANY.encode(m.Ping()),
-                                  timeout=PING)):  # fmt: skip
-        if isinstance(answer.result, dict):
-            return answer.result
+    """A host agent's answer to a Ping (pid, host, router endpoints); {} if none within
+    `PING`. Asked again while nobody answers at all: a router that has just linked may know
+    the agent's tokens before its queryable (the routes follow the tokens)."""
+    deadline = time.monotonic() + PING
+    while (left := deadline - time.monotonic()) > 0:
+        ping = _ANY.encode(m.Ping())
+        for answer in oks(session.get(keys.host_ctl(host), payload=ping, timeout=left)):
+            if isinstance(answer.result, dict):
+                return answer.result
+        time.sleep(0.02)
     return {}
 
 
@@ -117,17 +126,22 @@ def where(session: zenoh.Session, keys: Keys, host: str) -> str:
     return f"host {host} ({pid}{router})"
 
 
-def engines_host(session: zenoh.Session, keys: Keys) -> str | None:
-    """The host whose agent runs engine replicas of the system, or None if none is up."""
-    members = tokens(session, f"{keys.prefix}/member/**")
-    if not members:
-        return None
-    replicas = {key.rsplit("/", 1)[-1] for key in members}
-    for key in tokens(session, f"{keys.prefix}/alive/**"):
-        parsed = keys.parse_alive(key)
-        if parsed is not None and parsed[1] in replicas:
-            return parsed[0]
-    return "?"
+def engines_host(session: zenoh.Session, keys: Keys, patience: float = 0.0) -> str | None:
+    """The host whose agent runs engine replicas of the system, or None if none is up; "?"
+    if the host of none of them is known within ``patience`` seconds."""
+    deadline = time.monotonic() + patience
+    while True:
+        members = tokens(session, f"{keys.prefix}/member/**")
+        if not members:
+            return None
+        replicas = {key.rsplit("/", 1)[-1] for key in members}
+        for key in tokens(session, f"{keys.prefix}/alive/**"):
+            parsed = keys.parse_alive(key)
+            if parsed is not None and parsed[1] in replicas:
+                return parsed[0]
+        if time.monotonic() >= deadline:
+            return "?"
+        time.sleep(0.02)
 
 
 def already_running(
@@ -135,7 +149,7 @@ def already_running(
 ) -> str | None:
     """Why this agent must not serve (one line), or None when the bus has room for it."""
     system = keys.system
-    other = engines_host(session, keys) if engines else None
+    other = engines_host(session, keys, LOCATE) if engines else None
     if other is not None:
         at = where(session, keys, other) if other != "?" else "a host that does not answer"
         return (

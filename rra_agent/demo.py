@@ -3,7 +3,8 @@
 Runs ``scenarios/quadcopter/motor_failure.scenario.yaml`` (case ``adaptive``, or ``control``
 with ``--no-adaptation``) headless under ``rra up --rerun save demo.rrd``: the quadcopter
 hovers at 2 m, motor 2 breaks at t = 5 s, RRA swaps the controller, the run stops at
-t = 20 s (t = 10 s without adaptation: on the ground by then). Then it prints what happened, measured from what was recorded on the bus:
+t = 20 s (t = 10 s without adaptation: on the ground by then). Then it prints what
+happened, measured from what was recorded on the bus:
 
 - detection: fault -> the Context Monitor's first ``WorkingMotors < 4``;
 - decision: that measurement -> the Adaptation Engine's selection with Proploss;

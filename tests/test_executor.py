@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +66,10 @@ class FakeActuator:
                 self.deadlines[s.name] = deadlines[s.name]
 
     def replace(
-        self, pairs: list[tuple[NodeSpec, NodeSpec]], deadlines: dict[str, float] | None = None
+        self,
+        pairs: list[tuple[NodeSpec, NodeSpec]],
+        deadlines: dict[str, float] | None = None,
+        on_stopped: Callable[[], None] | None = None,
     ) -> None:
         """As the real one: each old node stopped, then its new one started (not if the old
         one did not stop)."""
@@ -77,6 +81,8 @@ class FakeActuator:
                 failed[old.name] = str(e)
                 failed[new.name] = f"not started: {old.name} did not stop"
                 continue
+            if on_stopped is not None:
+                on_stopped()
             try:
                 self.start([new])
             except StepFailed as e:
@@ -190,6 +196,30 @@ def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
     ]
     assert act.batches == [2]  # the export cost no round trip of its own
     assert "controller" not in ex.running and "proploss_controller" in ex.running
+
+
+def test_a_replacement_s_plan_lines_time_the_stop_and_the_start_apart(quad):
+    """One `ReplaceNode` does both: the stop's line lasts until the old node is gone, the
+    start's from then until the new one is ready (not both the whole request)."""
+    _, target = quad
+    now = [0.0]
+    act = FakeActuator()
+    took = {"stop": 0.010, "start": 0.030}
+    real_do = act._do
+
+    def timed(op: str, name: str, *rest: Any) -> None:
+        real_do(op, name, *rest)
+        now[0] += took.get(op, 0.001)
+
+    act._do = timed  # type: ignore[method-assign]
+    rep = Replacement(default="stop-then-start")
+    ex = Executor(act, K, rep, default_host="local", clock=lambda: now[0])
+    deploy(ex, act, target("Standard"))
+    out = ex.execute(swap_plan(target))
+    assert out.ok, out.error
+    lines = {(r.action, r.node): r.seconds for r in out.records}
+    assert lines[("stop", "controller")] == pytest.approx(0.010)
+    assert lines[("start", "proploss_controller")] == pytest.approx(0.030)
 
 
 def test_a_stop_then_start_swap_stops_the_old_node_with_its_deadline(quad):

@@ -287,15 +287,18 @@ class ZenohActuator:
         self,
         pairs: list[tuple[m.NodeSpec, m.NodeSpec]],
         deadlines: Mapping[str, float] | None = None,
+        on_stopped: Callable[[], None] | None = None,
     ) -> None:
         """Stop each ``(old, new)`` pair's old node and start its new one once the old is
         gone: one `ReplaceNode` to their host agent where both run on one host (the new
         process prepares while the old stops), else `stop` then `start`. `StepFailed`
         naming the old nodes that did not stop and the new ones that did not start (a new
-        one whose old one did not stop is not started, and is stopped)."""
+        one whose old one did not stop is not started, and is stopped). ``on_stopped`` is
+        called as the old nodes are seen gone (once per kind of pair: the last call counts)."""
         deadlines = deadlines or {}
+        stopped = on_stopped or (lambda: None)
         local = [(o, n) for o, n in pairs if o.host == n.host and self.reachable(o.host)]
-        failed = self._replace_apart([p for p in pairs if p not in local], deadlines)
+        failed = self._replace_apart([p for p in pairs if p not in local], deadlines, stopped)
         trace.mark("engine:replace", ",".join(n.name for _, n in local))
         mark = self._mark()
         sent: list[tuple[m.NodeSpec, m.NodeSpec]] = []
@@ -310,7 +313,7 @@ class ZenohActuator:
             if _running_already(result):
                 running.add(new.name)
             sent.append((old, new))
-        failed.update(self._wait_replaced(sent, mark, running))
+        failed.update(self._wait_replaced(sent, mark, running, stopped))
         if failed:
             self._abandon([n for o, n in sent if o.name in failed and n.name not in failed])
             for o, n in sent:
@@ -320,21 +323,32 @@ class ZenohActuator:
             raise StepFailed(f"replace {first[0]}: {first[1]}", failed)
 
     def _wait_replaced(
-        self, sent: list[tuple[m.NodeSpec, m.NodeSpec]], mark: int, running: set[str]
+        self,
+        sent: list[tuple[m.NodeSpec, m.NodeSpec]],
+        mark: int,
+        running: set[str],
+        stopped: Callable[[], None],
     ) -> dict[str, str]:
-        """Wait for each old node's end, then for each new one's readiness (but those
-        ``running`` already)."""
+        """Wait for each old node's end (then ``stopped()``), then for each new one's
+        readiness (but those ``running`` already)."""
+        if not sent:
+            return {}
         failed = self._wait_stopped([o.name for o, _ in sent], mark)
         trace.mark("engine:stopped", ",".join(o.name for o, _ in sent))
+        stopped()
         news = [n.name for o, n in sent if o.name not in failed and n.name not in running]
         failed.update(self._wait_started(news, mark))
         trace.mark("engine:started", ",".join(n.name for _, n in sent))
         return failed
 
     def _replace_apart(
-        self, pairs: list[tuple[m.NodeSpec, m.NodeSpec]], deadlines: Mapping[str, float]
+        self,
+        pairs: list[tuple[m.NodeSpec, m.NodeSpec]],
+        deadlines: Mapping[str, float],
+        stopped: Callable[[], None],
     ) -> dict[str, str]:
-        """`replace` of pairs on two hosts (or an unreachable one): stop, then start."""
+        """`replace` of pairs on two hosts (or an unreachable one): stop (then
+        ``stopped()``), then start."""
         failed: dict[str, str] = {}
         if not pairs:
             return failed
@@ -342,6 +356,7 @@ class ZenohActuator:
             self.stop([o for o, _ in pairs], deadlines)
         except StepFailed as e:
             failed.update(e.nodes or {o.name: str(e) for o, _ in pairs})
+        stopped()
         news = [n for o, n in pairs if o.name not in failed]
         for o, n in pairs:
             if o.name in failed:

@@ -97,11 +97,13 @@ class Actuator(Protocol):
         self,
         pairs: list[tuple[NodeSpec, NodeSpec]],
         deadlines: Mapping[str, float] | None = None,
+        on_stopped: Callable[[], None] | None = None,
     ) -> None:
         """Stop each pair's old node, as `stop` does, and start its new one once the old
         one is gone, as `start` does; raise StepFailed naming the old nodes that did not
         stop and the new ones that did not start (a new one whose old one did not stop is
-        not started)."""
+        not started). ``on_stopped`` is called once the old nodes are gone (the last call
+        counts)."""
         ...
 
     def control(self, batch: list[Ctl]) -> list[m.Reply]:
@@ -767,14 +769,18 @@ class Executor:
             for w in cold
         ]
         t0 = self.clock()
+        gone: list[float] = []
         failed = _failed_by(
             lambda: self.actuator.replace([(o, n) for o, n, _ in pairs],
-                                          self.replacement.stop_deadline),
+                                          self.replacement.stop_deadline,
+                                          lambda: gone.append(self.clock())),
             [s.name for o, n, _ in pairs for s in (o, n)],
         )  # fmt: skip
-        self._settle(tx, failed, self.clock() - t0, [
-            ("stop", [(o, u) for o, _, u in pairs], self._stopped, self._unstop),
-            ("start", [(n, u) for _, n, u in pairs], self._started, self._unstart),
+        t1 = self.clock()
+        stopped = gone[-1] if gone else t1  # the start's line: from the old node's end
+        self._settle(tx, failed, [
+            ("stop", [(o, u) for o, _, u in pairs], self._stopped, self._unstop, stopped - t0),
+            ("start", [(n, u) for _, n, u in pairs], self._started, self._unstart, t1 - stopped),
         ])  # fmt: skip
 
     def _batch(
@@ -793,29 +799,28 @@ class Executor:
             return
         t0 = self.clock()
         failed = _failed_by(lambda: call([s for s, _ in specs]), [s.name for s, _ in specs])
-        self._settle(tx, failed, self.clock() - t0, [(action, specs, done, undo)])
+        self._settle(tx, failed, [(action, specs, done, undo, self.clock() - t0)])
 
     def _settle(
         self,
         tx: Transaction,
         failed: Mapping[str, str],
-        seconds: float,
         groups: list[tuple[str, list[tuple[NodeSpec, int]], Callable[[NodeSpec], None],
-                          Callable[[NodeSpec], None]]],
+                          Callable[[NodeSpec], None], float]],
     ) -> None:
-        """After one call to the actuator: each group's action recorded; each action that
-        was done is ``done`` and leaves its ``undo`` in its unit first; then each unit with
-        an action that failed (named in ``failed``) fails, undoing the unit's other actions,
-        those of this call included."""
-        for action, specs, _, _ in groups:
+        """After one call to the actuator: each group's action recorded with its seconds;
+        each action that was done is ``done`` and leaves its ``undo`` in its unit first; then
+        each unit with an action that failed (named in ``failed``) fails, undoing the unit's
+        other actions, those of this call included."""
+        for action, specs, _, _, seconds in groups:
             mine = {s.name: failed[s.name] for s, _ in specs if s.name in failed}
             _record(tx, action, [s for s, _ in specs], mine, seconds)
-        for action, specs, done, undo in groups:
+        for action, specs, done, undo, _ in groups:
             for spec, unit in specs:
                 if spec.name not in failed:
                     done(spec)
                     tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
-        for action, specs, _, _ in groups:
+        for action, specs, _, _, _ in groups:
             for spec, unit in specs:
                 if spec.name in failed:
                     why = failed[spec.name]

@@ -365,6 +365,14 @@ def test_standby_resolution_engine_takes_over_from_a_killed_leader(system):
     assert sys_.node(st, "sink")["pid"] == before["sink"]
     st = sys_.wait(lambda s: sys_.node(s, leader)["state"] == "RUNNING", "the old leader back")
     assert sys_.leader(st) != leader  # no flapping back
+    # The log holds the killed leader's crash once: it came while nobody led, and the new
+    # leader logged it as it took over (with its restart, which came after).
+    crashes = [e for e in sys_.events() if isinstance(e, m.NodeState) and e.node == leader
+               and e.state == "BACKOFF"]  # fmt: skip
+    assert len(crashes) == 1 and "status -9" in crashes[0].reason, crashes
+    restarts = [e for e in sys_.events() if isinstance(e, m.NodeState) and e.node == leader
+                and e.previous == "BACKOFF" and e.state == "STARTING"]  # fmt: skip
+    assert len(restarts) == 1, restarts
 
 
 def test_a_lone_restarted_resolution_engine_resumes_and_adopts(system):

@@ -46,10 +46,45 @@ class EventSink:
             self._file.write(_JSON.encode(event) + b"\n")
             self._file.flush()
 
+    def record_missing(
+        self, events: Iterable[m.AdaptationEvent | m.NodeState]
+    ) -> list[m.AdaptationEvent | m.NodeState]:
+        """Log those of ``events`` that the log's last `TAIL` bytes do not hold (a standby
+        taking over: what came while nobody led); those it wrote."""
+        if self._file is None:
+            return []
+        held = set(_tail_lines(Path(self._file.name), TAIL))
+        written = []
+        for event in events:
+            line = _JSON.encode(event)
+            if line not in held:
+                held.add(line)
+                self.record(event)
+                written.append(event)
+        return written
+
     def close(self) -> None:
         if self._file is not None:
             self._file.close()
             self._file = None
+
+
+#: How much of its log a new leader reads back to know what the previous one wrote (bytes).
+TAIL = 256 * 1024
+
+
+def _tail_lines(path: Path, size: int) -> list[bytes]:
+    """The whole lines of the last ``size`` bytes of ``path`` (none if it is missing)."""
+    try:
+        with path.open("rb") as f:
+            f.seek(0, 2)
+            start = max(0, f.tell() - size)
+            f.seek(start)
+            data = f.read()
+    except OSError:
+        return []
+    lines = data.splitlines()
+    return lines[1:] if start > 0 and lines else lines
 
 
 def read_events(path: str | Path) -> list[m.AdaptationEvent | m.NodeState]:

@@ -38,6 +38,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Collection
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,11 @@ TIMEOUTS_UNAVAILABLE = 3
 PROBE_TIMEOUT = 5.0
 #: Probes of an unavailable implementation back off up to this (seconds).
 PROBE_MAX = 300.0
+#: A standby keeps the events it received in the last this many seconds (at most
+#: `UNLOGGED_MAX`), to log at its takeover those that came while nobody led (longer than a
+#: takeover takes: the leader's lease and the standby's claim).
+UNLOGGED_HORIZON = 10.0
+UNLOGGED_MAX = 512
 _SEL = m.Codec[m.SelectionMessage](m.SelectionMessage)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _STATE = m.Codec[m.StateMessage](m.StateMessage)
@@ -195,6 +201,10 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         self.version = 0
         # ---- what this replica knows of the running system ----
         self.observed: dict[str, m.NodeState] = {}
+        #: Events received while standing by, with when (`_log_unlogged`).
+        self._unlogged: deque[tuple[float, m.AdaptationEvent | m.NodeState]] = deque(
+            maxlen=UNLOGGED_MAX
+        )
         #: Hosts whose agent's liveliness token this replica sees (a partition hides it).
         self.present: set[str] = set()
         self.rerun: dict[str, Any] = _rerun_config()
@@ -311,6 +321,8 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             self.sink.record(ev)
             if self.viz:
                 self.viz.event(ev)
+        else:
+            self._unlogged.append((time.monotonic(), ev))
         if ev.injection is not None:
             self._record_injection(ev.injection, ev.operator)
 
@@ -392,6 +404,8 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             self.sink.record(st)
             if self.viz:
                 self.viz.node_state(st)
+        else:
+            self._unlogged.append((time.monotonic(), st))
         if st.node in self.verified and st.pid != self.verified[st.node]:
             del self.verified[st.node]
         prev = self.observed.get(st.node)
@@ -421,6 +435,7 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             self.election.observe_epoch(highest)
             return
         self._event("takeover", f"{self.name} leads (epoch {fence.epoch})", None)
+        self._log_unlogged()
         self.reflexes.take_over()
         if self.mirror is not None:
             self._adopt_mirror(self.mirror)
@@ -429,6 +444,22 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         self._take_latest()
         self._reconcile_soon = True
         self.publish_status()
+
+    def _log_unlogged(self) -> None:
+        """Log the events this standby received lately that the log lacks: those that came
+        after the previous leader died (a killed engine's own BACKOFF among them) and
+        before this one led, which nobody logged."""
+        horizon = time.monotonic() - UNLOGGED_HORIZON
+        recent = [ev for at, ev in self._unlogged if at >= horizon]
+        self._unlogged.clear()
+        written = self.sink.record_missing(recent) if self.sink is not None else []
+        if self.viz is None:
+            return
+        for ev in written:
+            if isinstance(ev, m.NodeState):
+                self.viz.node_state(ev)
+            else:
+                self.viz.event(ev)
 
     def _adopt_mirror(self, state: m.EngineState) -> None:
         """Continue from the state the previous leader published."""

@@ -50,13 +50,14 @@ _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 class Rover:
     """``rra up`` of a ROS 2 package, and what a test asks of it."""
 
-    def __init__(self, procs: Any, bus: Any, run_dir: Path, package: Path, hostile: bool):
+    def __init__(self, procs: Any, bus: Any, run_dir: Path, package: Path, hostile: bool,
+                 extra: tuple[str, ...] = ()):  # fmt: skip
         self.procs = procs
         self.run_dir = run_dir
         self.system = load_package(package, validate=False).name
         self.proc = procs.python(
             "rra_agent", "up", str(package), "--run-dir", str(run_dir), "-q",
-            "--connect", bus.connect[0], "--no-multicast", name="up",
+            "--connect", bus.connect[0], "--no-multicast", *extra, name="up",
         )  # fmt: skip
         self.port = int(bus.connect[0].rsplit(":", 1)[1])
         wait_until(lambda: self.proc.poll() is not None or listening(self.port), 60,

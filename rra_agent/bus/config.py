@@ -38,7 +38,8 @@ Security (`rra_agent.security`): ``--certs DIR`` gives a process its mTLS identi
 the system CA and its role's certificate from ``rra certs``; Zenoh's ``transport/link/tls``
 settings, ``enable_mtls``) and makes the default endpoints ``tls/``. A node's session gets a
 fixed Zenoh id (`node_zid`), which the access-control configuration of its host's router
-names together with the node certificate. ``zenoh`` carries any other Zenoh setting verbatim
+names together with the node certificate; the session of a ROS 2 executable a node starts
+has one of its own (`ros2_zid`). ``zenoh`` carries any other Zenoh setting verbatim
 (key path -> JSON value, e.g. ``access_control`` or ``transport/shared_memory/enabled``), so
 ``--bus-config FILE`` accepts Zenoh's own TLS and ACL settings.
 """
@@ -138,6 +139,13 @@ def node_zid(system: str, node: str) -> str:
     without leading zeros (what Zenoh accepts as ``id``); the ACL names it."""
     digest = hashlib.sha256(f"rra/{system}/node/{node}".encode()).hexdigest()[:32]
     return digest.lstrip("0") or "1"
+
+
+def ros2_zid(system: str, node: str) -> str:
+    """The fixed Zenoh id of the session of the ROS 2 executable that node ``node`` of
+    ``system`` starts (its own session, not the node's: distinct from `node_zid`, as a node
+    name has no ``/``); the ACL names it."""
+    return node_zid(system, f"{node}/ros2")
 
 
 class Tls(FrozenModel, frozen=True):

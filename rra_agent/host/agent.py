@@ -46,7 +46,13 @@ from rra_agent import text, trace
 from rra_agent.bus import counters
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import oks
-from rra_agent.bus.config import BusConfig, explain_open_failure, node_zid
+from rra_agent.bus.config import (
+    KEEP_ALIVE,
+    BusConfig,
+    explain_open_failure,
+    node_zid,
+    ros2_zid,
+)
 from rra_agent.bus.counters import Counters, RateLimitedLog, receive, topic_limits
 from rra_agent.bus.keys import Keys, check_chunk
 from rra_agent.bus.loop import MainLoop
@@ -62,6 +68,7 @@ from rra_agent.host.processes import LocalHost, process_state
 from rra_agent.host.supervisor import LIVE, Notice, Proc, State, StopPolicy, Supervisor, Transition
 from rra_agent.models.system import Scheduling
 from rra_agent.package.bundle import ModelBundle
+from rra_agent.ros2 import launch
 
 TICK = 0.02
 _REQ = m.Codec[m.HostRequest](m.HostRequest)
@@ -128,6 +135,7 @@ class HostAgent:
             prober=self._probe_later,
         )
         self.local.bus_for = self._child_bus
+        self.local.env_for = self._child_env
         # Without certificates every node has this host's bus configuration: spares open
         # their sessions ahead (with them, a node's identity is its own, known at its start).
         self.local.spare_bus = self.bus if certs is None else None
@@ -175,6 +183,26 @@ class HostAgent:
             return self.bus.with_identity(self.certs, "engine")
         cfg = self.bus.with_identity(self.certs, "node")
         return msgspec.structs.replace(cfg, zid=node_zid(self.keys.system, spec.name))
+
+    def _child_env(self, spec: m.NodeSpec) -> dict[str, str]:
+        """A ROS 2 executable's Zenoh session configuration on a bus with certificates:
+        written for it (``<log_dir>/<node>.zenoh.json5``, mode 0600) and named in its node's
+        environment (``ZENOH_SESSION_CONFIG_URI``), which passes it on to the executable."""
+        if self.certs is None or spec.ros2 is None or not spec.ros2.executable:
+            return {}
+        bus = self._child_bus(spec)
+        assert bus.tls is not None
+        config = launch.session_config(
+            bus.hub,
+            zid=ros2_zid(self.keys.system, spec.name),
+            ca=bus.tls.ca,
+            cert=bus.tls.cert,
+            key=bus.tls.key,
+            lease_ms=bus.lease_ms,
+            keep_alive=KEEP_ALIVE,
+        )
+        path = launch.write_session_config(self.log_dir / f"{spec.name}.zenoh.json5", config)
+        return {launch.SESSION_CONFIG_ENV: str(path.resolve())}
 
     def request_stop(self, *_: Any) -> None:
         self.loop.request_stop()

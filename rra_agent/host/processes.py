@@ -127,6 +127,9 @@ class LocalHost:
         self.extra_env: dict[str, str] = {}
         #: The bus configuration of each child (its identity: engine or node, its Zenoh id).
         self.bus_for: Callable[[NodeSpec], BusConfig] = lambda spec: self.bus
+        #: Variables of one child's own (e.g. the Zenoh session configuration file of a ROS 2
+        #: executable on a bus with certificates), made when it is spawned.
+        self.env_for: Callable[[NodeSpec], dict[str, str]] = lambda spec: {}
         #: The one bus configuration of every node of this host, if they have one (no
         #: per-node identity): the fork server's spares open their sessions with it ahead
         #: (``RRA_SPARE_SESSION=0``: not).
@@ -328,6 +331,7 @@ class LocalHost:
             failure.REPORT_ENV: str(self.report_path(spec.name).resolve()),
             "PYTHONUNBUFFERED": "1",
             **self.extra_env,
+            **self.env_for(spec),
         }
         if not isinstance(spec.implementation, str):
             env.update(spec.implementation.env)

@@ -2,9 +2,10 @@
 component with a ``ros2:`` section): the host agent runs this node (`run_ros2_executable`),
 which starts the executable with ``--ros-args`` (its node name, a remapping per port, its
 parameters; ``RMW_IMPLEMENTATION=rmw_zenoh_cpp``, the ROS domain, the host router's
-endpoint), waits for its ROS 2 node (its liveliness token, and its parameter and lifecycle
-services) and speaks for it on the bus: the engines see a node like any other and its
-control requests become ROS 2 calls:
+endpoint, and on a bus with certificates ``ZENOH_SESSION_CONFIG_URI``, the session
+configuration its host agent wrote for it), waits for its ROS 2 node (its liveliness token,
+and its parameter and lifecycle services) and speaks for it on the bus: the engines see a
+node like any other and its control requests become ROS 2 calls:
 
 - ``SetParams``: ``set_parameters``; what the node refuses is not set, and the reply says
   why; ``Describe`` reads the values back with ``get_parameters``;
@@ -228,6 +229,7 @@ class Executable:
             params={k: v for k, v in params.items() if v is not None},
             domain=self.ros.domain,
             router=self.router,
+            session_config=os.environ.get(launch.SESSION_CONFIG_ENV) or None,
         )
         self.state = "unconfigured" if self.lifecycle is not None else "active"
         self.exited = None
@@ -500,9 +502,9 @@ class Ros2ExecutableRuntime(NodeRuntime):
         ns = "/rra" + ("" if ros.namespace == "/" else ros.namespace)
         self.side = Ros2Side(session, ros, ros.node, ns)
         log = lambda s: print(f"[{self.spec.name}] {s}", file=sys.stderr, flush=True)  # noqa: E731
-        if not self.bus.hub.startswith("tcp/"):
+        if not self.bus.hub.startswith("tcp/") and not os.environ.get(launch.SESSION_CONFIG_ENV):
             log(f"warning: the ROS 2 executable connects to {self.bus.hub}: it needs that "
-                "transport's configuration (ZENOH_SESSION_CONFIG_URI)")
+                f"transport's configuration ({launch.SESSION_CONFIG_ENV})")
         self.exe = Executable(self.spec, self.side, self.bus.hub, self._child_exited, log)
         return Ros2Transport(self.exe)
 

@@ -5,22 +5,36 @@ An implementation ``ros2: PACKAGE EXECUTABLE`` runs ``ros2 run PACKAGE EXECUTABL
 its parameters (``-p name:=value``). The environment makes it an rmw_zenoh node of the
 system's ROS domain whose Zenoh session connects to its host's router
 (``RMW_IMPLEMENTATION=rmw_zenoh_cpp``, ``ROS_DOMAIN_ID``, ``ZENOH_CONFIG_OVERRIDE``).
-Pure: the host agent supervises the command like any external one.
+
+On a bus with certificates the router listens on TLS only and admits a session only with a
+certificate of the system: the host agent writes the executable a Zenoh session
+configuration (`session_config`, `write_session_config`: client mode, the router's TLS
+endpoint, the CA and the host's node certificate with mutual TLS, multicast scouting off,
+a fixed Zenoh id the router's access control names) and the environment points at it
+(``ZENOH_SESSION_CONFIG_URI``, what rmw_zenoh_cpp and zenoh-ros2-sdk read). Both apply
+``ZENOH_CONFIG_OVERRIDE`` on top of that file, so it keeps the connect endpoint, the same as
+the file's: zenoh-ros2-sdk replaces the file's endpoints with ``tcp/`` of the router address
+its code is given, and an override inherited from the environment would win otherwise.
+`command` is pure: the host agent supervises the command like any external one.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from rra_agent.ros2.errors import BadName, FieldError
 from rra_agent.ros2.names import check_domain, check_namespace, check_node_name, qualify
 
 PREFIX = "ros2:"
+#: The environment variable naming a ROS 2 process's Zenoh session configuration file.
+SESSION_CONFIG_ENV = "ZENOH_SESSION_CONFIG_URI"
 _WORD = re.compile(r"[A-Za-z0-9_.\-]+")
 
 
@@ -73,8 +87,10 @@ def command(
     domain: int = 0,
     router: str = "tcp/127.0.0.1:7447",
     extra: Sequence[str] = (),
+    session_config: str | None = None,
 ) -> tuple[list[str], dict[str, str]]:
-    """The argv and the environment additions that start ``run`` as a node of the system."""
+    """The argv and the environment additions that start ``run`` as a node of the system;
+    ``session_config``: its Zenoh session configuration file (`write_session_config`)."""
     args: list[str] = []
     if node is not None:
         args += ["-r", f"__node:={check_node_name(node)}"]
@@ -94,7 +110,60 @@ def command(
         "ROS_DOMAIN_ID": str(check_domain(domain)),
         "ZENOH_CONFIG_OVERRIDE": f"connect/endpoints={json.dumps([router])}",
     }
+    if session_config is not None:
+        env[SESSION_CONFIG_ENV] = session_config
     return argv, env
+
+
+def session_config(
+    router: str,
+    *,
+    zid: str,
+    ca: str,
+    cert: str,
+    key: str,
+    lease_ms: int = 2000,
+    keep_alive: int = 8,
+) -> dict[str, Any]:
+    """The Zenoh session configuration of a ROS 2 executable on a bus with certificates:
+    a client of its host's router at ``router`` (a ``tls/`` endpoint) with mutual TLS
+    (the system's CA ``ca``, the certificate ``cert`` and key ``key`` of the host's node
+    identity), Zenoh id ``zid``, multicast scouting off, rra's lease on its link."""
+    return {
+        "id": zid,
+        "mode": "client",
+        "connect": {"endpoints": [router]},
+        "scouting": {"multicast": {"enabled": False}, "delay": 0},
+        "timestamping": {"enabled": True},
+        "transport": {
+            "link": {
+                "tx": {"lease": lease_ms, "keep_alive": keep_alive},
+                "tls": {
+                    "root_ca_certificate": ca,
+                    "connect_certificate": cert,
+                    "connect_private_key": key,
+                    "enable_mtls": True,
+                    "verify_name_on_connect": True,
+                },
+            },
+        },
+    }
+
+
+def write_session_config(path: str | Path, config: Mapping[str, Any]) -> Path:
+    """Write ``config`` to ``path`` (JSON, which is JSON5 too), readable by its owner only
+    (mode 0600, also when the file was there before), replaced whole; the path written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        os.write(fd, (json.dumps(config, indent=2) + "\n").encode())
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    return path
 
 
 def _remap_name(name: str) -> str:

@@ -42,10 +42,14 @@ A system with a ROS 2 side (``ros2:`` in ``rra.yaml``; docs/ros2.md) also allows
 ROS domain D, everything on ``D/**`` (topics and services) and ``@ros2_lv/D/**`` (the graph's
 liveliness tokens) to the engines and to each node whose component speaks ROS 2 (a ROS 2
 executable's node, which calls its services and relays its inputs; a node with ROS 2
-ports), and reading them to the operator (``rra status`` lists the graph). ROS 2 nodes
-themselves connect with their own Zenoh configuration; the routers admit them only with a
-certificate of the system (``ZENOH_SESSION_CONFIG_URI``), and then as the subject of that
-certificate.
+ports), and reading them to the operator (``rra status`` lists the graph). The session of
+each ROS 2 executable a node of this host starts (``ros2: PACKAGE EXECUTABLE``, or a
+command with a ``ros2:`` section) is a subject of its own: the certificate ``node.<host>``
+AND the executable's fixed Zenoh id (`rra_agent.bus.config.ros2_zid`, written into the
+session configuration its host agent generates, ``ZENOH_SESSION_CONFIG_URI``), allowed
+exactly ``D/**`` and ``@ros2_lv/D/**``, nothing of rra's own keys. Other ROS 2 processes
+(not components) join only with a certificate of the system and their own Zenoh
+configuration, and are then the subject of that certificate and id.
 
 A component without a ``host`` runs where the Run-time Resolution Engine's leader runs,
 which may be any host, so every host's router admits it. Everything else is denied
@@ -58,11 +62,16 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from rra_agent.bus.config import node_zid
+from rra_agent.bus.config import node_zid, ros2_zid
 from rra_agent.bus.keys import Keys
 from rra_agent.core.plan import topic_of
 from rra_agent.deployment import Deployment
-from rra_agent.models.system import Component, SystemModel, parse_endpoint
+from rra_agent.models.system import (
+    Component,
+    SystemModel,
+    is_ros2_implementation,
+    parse_endpoint,
+)
 from rra_agent.security.certs import OPERATOR, common_name
 
 #: Every message type Zenoh's access control filters (zenoh 1.10 rejects anything else).
@@ -269,4 +278,19 @@ def access_control(dep: Deployment, host: str) -> dict[str, Any]:
             _node_rules(n, keys) + (_ros2_rules(f"node:{c.name}/ros2", ros2)
                                     if c.speaks_ros2() else []),
         )
+        if runs_ros2_executable(c):
+            acl.grant(
+                {
+                    "id": f"ros2:{c.name}",
+                    "cert_common_names": [common_name("node", host)],
+                    "zids": [ros2_zid(model.system, c.name)],
+                },
+                _ros2_rules(f"ros2:{c.name}/domain", ros2),
+            )
     return acl.config()
+
+
+def runs_ros2_executable(component: Component) -> bool:
+    """Whether a component's node may start a ROS 2 executable (any of its implementations
+    is one): its session is then a subject of its own."""
+    return any(is_ros2_implementation(i, component) for i in component.implementations_all)

@@ -7,9 +7,11 @@ Zenoh, without ROS installed. Each is started by rra-agent as a ROS 2 executable
     rover_node.py ROLE --ros-args -r __node:=NAME -r PORT:=/topic -p name:=value ...
 
 with ``ROS_DOMAIN_ID`` and ``ZENOH_CONFIG_OVERRIDE`` (the host router's endpoint) in its
-environment. It reads its remappings and parameters as ``rclpy`` would, serves
-``set_parameters`` and ``get_parameters`` (and ``change_state`` when managed) and runs
-until SIGINT or SIGTERM. Offline: the message directory the SDK reads is exported from
+environment, and on a system with certificates ``ZENOH_SESSION_CONFIG_URI`` (its Zenoh
+session configuration: mutual TLS, its Zenoh id), read as rmw_zenoh reads it: that file,
+then ``ZENOH_CONFIG_OVERRIDE`` on top. It reads its remappings and parameters as ``rclpy``
+would, serves ``set_parameters`` and ``get_parameters`` (and ``change_state`` when managed)
+and runs until SIGINT or SIGTERM. Offline: the message directory the SDK reads is exported from
 rra-agent's type registry (`TypeRegistry.export`), with the package's own ``rover_msgs``.
 
 Roles:
@@ -90,16 +92,41 @@ def _number(text: str) -> bool:
     return True
 
 
-def router() -> tuple[str, int]:
-    """The router of ``ZENOH_CONFIG_OVERRIDE``'s ``connect/endpoints`` (tcp/IP:PORT)."""
+def endpoints() -> list[str] | None:
+    """The routers to connect to as rmw_zenoh finds them: ``connect/endpoints`` of
+    ``ZENOH_CONFIG_OVERRIDE``, else of the file ``ZENOH_SESSION_CONFIG_URI`` names; None
+    when neither says (zenoh-ros2-sdk's default)."""
     override = os.environ.get("ZENOH_CONFIG_OVERRIDE", "")
-    for part in override.split(";"):
+    for part in reversed(override.split(";")):
         key, _, value = part.partition("=")
         if key.strip() == "connect/endpoints":
-            endpoint = json.loads(value)[0]
-            host, _, port = endpoint.split("/", 1)[1].rpartition(":")
-            return host, int(port)
-    return "127.0.0.1", 7447
+            return list(json.loads(value))
+    uri = os.environ.get("ZENOH_SESSION_CONFIG_URI", "").strip()
+    if uri:
+        import json5
+
+        with open(uri) as f:
+            found = json5.load(f).get("connect", {}).get("endpoints")
+        return list(found) if found else None
+    return None
+
+
+def router() -> tuple[str, int]:
+    """The first router's address (IP, port): what zenoh-ros2-sdk's calls are given."""
+    found = endpoints() or ["tcp/127.0.0.1:7447"]
+    host, _, port = found[0].split("/", 1)[1].rpartition(":")
+    return host.strip("[]"), int(port)
+
+
+def keep_endpoints() -> None:
+    """zenoh-ros2-sdk loads ``ZENOH_SESSION_CONFIG_URI`` and then replaces its endpoints with
+    ``tcp/`` of the address it is given; rmw_zenoh keeps the file's. Put them back (first in
+    ``ZENOH_CONFIG_OVERRIDE``, which the SDK applies last: the override's own entries win)."""
+    found = endpoints()
+    if found:
+        override = os.environ.get("ZENOH_CONFIG_OVERRIDE", "")
+        os.environ["ZENOH_CONFIG_OVERRIDE"] = ";".join(
+            filter(None, [f"connect/endpoints={json.dumps(found)}", override]))
 
 
 # ---- the node ----------------------------------------------------------------------------
@@ -117,6 +144,7 @@ class RoverNode:
         os.environ["ZENOH_CONFIG_OVERRIDE"] = (
             os.environ.get("ZENOH_CONFIG_OVERRIDE", "") + ";scouting/delay=0"
         ).lstrip(";")
+        keep_endpoints()
         ip, port = router()
         self.kw = {"router_ip": ip, "router_port": port, "node_name": args.node,
                    "namespace": args.namespace}

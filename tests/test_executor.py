@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -70,11 +70,20 @@ class FakeActuator:
         pairs: list[tuple[NodeSpec, NodeSpec]],
         deadlines: dict[str, float] | None = None,
         on_stopped: Callable[[], None] | None = None,
+        export: Collection[str] = (),
     ) -> None:
-        """As the real one: each old node stopped, then its new one started (not if the old
-        one did not stop)."""
+        """As the real one: each old node's state exported if asked (by its host agent),
+        the old node stopped, then its new one started with that state (not if the old one
+        did not stop or export)."""
         failed: dict[str, str] = {}
         for old, new in pairs:
+            if old.name in export:
+                try:
+                    self._do("export", old.name)
+                except StepFailed as e:
+                    failed[old.name] = failed[new.name] = str(e)
+                    continue
+                new = msgspec.structs.replace(new, state=self.states.get(old.name))
             try:
                 self.stop([old], deadlines)
             except StepFailed as e:
@@ -90,7 +99,15 @@ class FakeActuator:
         if failed:
             raise StepFailed("replace failed", failed)
 
-    def control(self, batch: list[Ctl]) -> list[m.Reply]:
+    def control(
+        self, batch: list[Ctl], meanwhile: Callable[[], None] | None = None
+    ) -> list[m.Reply]:
+        replies = self._control(batch)
+        if meanwhile is not None:  # the real one: after sending, before reading the replies
+            meanwhile()
+        return replies
+
+    def _control(self, batch: list[Ctl]) -> list[m.Reply]:
         self.batches.append(len(batch))
         replies: list[m.Reply] = []
         for c in batch:
@@ -187,15 +204,46 @@ def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
     out = ex.execute(swap_plan(target))
     assert out.ok, out.error
     assert act.calls == [
-        # one batch: the simulator listens to the new controller before it starts (no
-        # command is lost), and the old one's state is exported, before it stops
+        # the simulator's rewire is sent first and is in flight while the host agent exports
+        # the old controller's state, stops it and starts the new one with it
         ("rewire", "vehicle_simulator", "motor_cmd", (K.data("proploss_controller/motor_cmd"),)),
         ("export", "controller"),
         ("stop", "controller"),
         ("start", "proploss_controller", True, {"integral": 1.5}),
     ]
-    assert act.batches == [2]  # the export cost no round trip of its own
+    assert act.batches == [1]  # the export is the agent's: no round trip of the engine's
     assert "controller" not in ex.running and "proploss_controller" in ex.running
+
+
+def test_a_cold_swap_whose_rewire_failed_meanwhile_is_undone_newest_first(quad):
+    """The rewire fails while the replacement (beside it) succeeded: the unit is undone,
+    the new controller stopped before the old one is started again (it may hold what the
+    old one needs), and the simulator keeps listening to the old one."""
+    _, target = quad
+    ex, act = make("stop-then-start")
+    deploy(ex, act, target("Standard"))
+    act.fail_on.add(("rewire", "vehicle_simulator"))
+    out = ex.execute(swap_plan(target))
+    assert not out.ok
+    assert act.calls[-2:] == [("stop", "proploss_controller"),
+                              ("start", "controller", True, None)]  # fmt: skip
+    assert "controller" in ex.running and "proploss_controller" not in ex.running
+    sim = ex.running["vehicle_simulator"]
+    assert sim.ports["motor_cmd"].keys == [K.data("controller/motor_cmd")]
+
+
+def test_a_cold_swap_whose_old_node_cannot_export_stops_nothing(quad):
+    _, target = quad
+    ex, act = make("stop-then-start")
+    deploy(ex, act, target("Standard"))
+    act.fail_on.add(("export", "controller"))
+    out = ex.execute(swap_plan(target))
+    assert not out.ok
+    assert ("stop", "controller") not in act.calls
+    assert not [c for c in act.calls if c[:2] == ("start", "proploss_controller")]
+    assert "controller" in ex.running and "proploss_controller" not in ex.running
+    assert act.calls[-1] == (  # the simulator's rewire undone
+        "rewire", "vehicle_simulator", "motor_cmd", (K.data("controller/motor_cmd"),))
 
 
 def test_a_replacement_s_plan_lines_time_the_stop_and_the_start_apart(quad):

@@ -794,6 +794,47 @@ def test_a_replacement_runs_none_of_its_code_before_the_node_it_replaces_is_gone
     assert ("holder_b", "holds the device") in [(name, what) for _, name, what in notes]
 
 
+@pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)
+def test_a_replacement_that_exports_starts_the_new_node_with_the_old_one_s_state(
+    agent, procs, tmp_path
+):
+    """``ReplaceNode`` with ``export``: the agent asks holder_a for its state, then stops it,
+    and holder_b imports that state (after its constructor, once holder_a is gone)."""
+    _, client, watch = agent
+    start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.0))
+    n = len(watch.states)
+    new = holder_spec("holder_b", tmp_path, 0.0)
+    ok(client.host("h1", m.ReplaceNode(node="holder_a", spec=new, export=True)))
+    running = wait_until(lambda: watch.state("holder_b", "RUNNING", n), 15, "holder_b RUNNING")
+    procs.watch(running.pid)
+    notes = [(name, what) for _, name, what in witnessed(tmp_path)]
+    assert notes == [
+        ("holder_a", "constructed"), ("holder_a", "holds the device"),
+        ("holder_a", "exported"), ("holder_a", "stopped"),
+        ("holder_b", "constructed"), ("holder_b", "holds the device"),
+        ("holder_b", "imported holder_a"),
+    ], notes  # fmt: skip
+
+
+def test_a_replacement_whose_old_node_cannot_export_leaves_it_running(agent, procs, tmp_path):
+    """The old node raises in ``export_state``: the reply is an ``Err`` (code ``export``)
+    saying so, holder_a runs on (same process) and holder_b is never started."""
+    _, client, watch = agent
+    spec = holder_spec("holder_a", tmp_path, 0.0)
+    spec = msgspec.structs.replace(spec, params={**spec.params, "export_fails": True})
+    first = start(client, watch, procs, spec)
+    n = len(watch.states)
+    new = holder_spec("holder_b", tmp_path, 0.0)
+    reply = client.host("h1", m.ReplaceNode(node="holder_a", spec=new, export=True))
+    assert isinstance(reply, m.Err) and reply.code == "export", reply
+    assert "holder_a did not export its state" in reply.message
+    assert "mid-transfer" in reply.message
+    with watch.lock:
+        after = watch.states[n:]
+    assert not [s for s in after if s.node in ("holder_a", "holder_b")], after
+    assert pid_alive(first.pid)  # the same process runs on
+
+
 def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(
     agent, procs, tmp_path
 ):

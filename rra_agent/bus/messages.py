@@ -564,12 +564,16 @@ class ReplaceNode(Msg, tag="replace_node"):
     """A ``stop-then-start`` swap on one host in one request: stop ``node`` as `StopNode`
     does (with ``deadline``) and start ``spec`` as `StartNode` does, but only once ``node``
     is gone. Meanwhile the replacement's process is prepared (forked, its session opened,
-    its data ports declared); none of its code runs before the old node has been reaped."""
+    its data ports declared); none of its code runs before the old node has been reaped.
+    With ``export``, the agent first asks ``node`` for its state (`ExportState`) and starts
+    ``spec`` with it; a node that does not export it is left running (the reply is an
+    `Err`, code ``export``)."""
 
     node: str
     spec: NodeSpec
     fence: Fence | None = None
     deadline: Annotated[float, msgspec.Meta(ge=0.0)] | None = None
+    export: bool = False
 
 
 class UpdateSpec(Msg, tag="update_spec"):

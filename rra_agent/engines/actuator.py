@@ -28,7 +28,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
 import msgspec
@@ -288,26 +288,36 @@ class ZenohActuator:
         pairs: list[tuple[m.NodeSpec, m.NodeSpec]],
         deadlines: Mapping[str, float] | None = None,
         on_stopped: Callable[[], None] | None = None,
+        export: Collection[str] = (),
     ) -> None:
         """Stop each ``(old, new)`` pair's old node and start its new one once the old is
         gone: one `ReplaceNode` to their host agent where both run on one host (the new
-        process prepares while the old stops), else `stop` then `start`. `StepFailed`
-        naming the old nodes that did not stop and the new ones that did not start (a new
+        process prepares while the old stops; all sent at once), else `stop` then `start`.
+        The old nodes named in ``export`` hand their state to their new ones (exported by
+        their host agent, or here first for a pair on two hosts). `StepFailed` naming the
+        old nodes that did not stop (or export) and the new ones that did not start (a new
         one whose old one did not stop is not started, and is stopped). ``on_stopped`` is
         called as the old nodes are seen gone (once per kind of pair: the last call counts)."""
         deadlines = deadlines or {}
         stopped = on_stopped or (lambda: None)
         local = [(o, n) for o, n in pairs if o.host == n.host and self.reachable(o.host)]
-        failed = self._replace_apart([p for p in pairs if p not in local], deadlines, stopped)
+        apart = [p for p in pairs if p not in local]
+        failed = self._replace_apart(apart, deadlines, stopped, export)
         trace.mark("engine:replace", ",".join(n.name for _, n in local))
         mark = self._mark()
         sent: list[tuple[m.NodeSpec, m.NodeSpec]] = []
         running: set[str] = set()  # new nodes that ran already (as they are)
-        for old, new in local:
-            req = m.ReplaceNode(node=old.name, spec=new, deadline=deadlines.get(old.name))
+        requests = [
+            (old, new, m.ReplaceNode(node=old.name, spec=new, deadline=deadlines.get(old.name),
+                                     export=old.name in export))
+            for old, new in local
+        ]  # fmt: skip
+        handlers = [(o, n, self._send_host(n.host, req)) for o, n, req in requests]
+        for old, new, handler in handlers:
             try:
-                result = self._host(new, req, "replace")
-            except (StepFailed, NoReply) as e:
+                result = self._ok(self._host_reply(handler, new.host), f"replace {new.name} "
+                                  f"on {new.host}")  # fmt: skip
+            except StepFailed as e:
                 failed[old.name] = failed[new.name] = str(e)
                 continue
             if _running_already(result):
@@ -346,12 +356,23 @@ class ZenohActuator:
         pairs: list[tuple[m.NodeSpec, m.NodeSpec]],
         deadlines: Mapping[str, float],
         stopped: Callable[[], None],
+        export: Collection[str],
     ) -> dict[str, str]:
-        """`replace` of pairs on two hosts (or an unreachable one): stop (then
-        ``stopped()``), then start."""
+        """`replace` of pairs on two hosts (or an unreachable one): the state of those in
+        ``export`` exported, stop (then ``stopped()``), then start."""
         failed: dict[str, str] = {}
         if not pairs:
             return failed
+        exporting = [(o, n) for o, n in pairs if o.name in export]
+        replies = self.control([Ctl(o, m.ExportState()) for o, _ in exporting]) if exporting else []
+        states: dict[str, Any] = {}
+        for (o, n), rep in zip(exporting, replies, strict=True):
+            if isinstance(rep, m.Ok):
+                states[n.name] = rep.result
+            else:
+                failed[o.name] = failed[n.name] = f"export of its state: {rep.message}"
+        pairs = [(o, msgspec.structs.replace(n, state=states.get(n.name, n.state)))
+                 for o, n in pairs if o.name not in failed]  # fmt: skip
         try:
             self.stop([o for o, _ in pairs], deadlines)
         except StepFailed as e:
@@ -367,11 +388,13 @@ class ZenohActuator:
             failed.update(e.nodes or {n.name: str(e) for n in news})
         return failed
 
-    def control(self, batch: list[Ctl]) -> list[m.Reply]:
+    def control(
+        self, batch: list[Ctl], meanwhile: Callable[[], None] | None = None
+    ) -> list[m.Reply]:
         """All requests in flight at once (each get returns at once; then drain the replies),
-        so a batch costs about one round trip. Successful spec changes are forwarded to the
-        host agents without waiting. A request to a node of an unreachable host is deferred
-        (answered ``Ok`` with no result here)."""
+        so a batch costs about one round trip; ``meanwhile`` runs before the draining.
+        Successful spec changes are forwarded to the host agents without waiting. A request
+        to a node of an unreachable host is deferred (answered ``Ok`` with no result here)."""
         if trace.enabled():
             trace.mark("engine:control", ",".join(c.label for c in batch))
         groups = self._by_container(batch)
@@ -399,6 +422,8 @@ class ZenohActuator:
             else None
             for i, c in enumerate(batch)
         ]
+        if meanwhile is not None:
+            meanwhile()
         replies = [
             self._first_reply(h, c) if h is not None else self._defer(c)
             for h, c in zip(handlers, batch, strict=True)
@@ -463,6 +488,21 @@ class ZenohActuator:
         return out or m.Err(
             message=f"no reply from {who} within {self.request_timeout:g} s", code="no_reply"
         )
+
+    def _send_host(self, host: str, request: m.HostRequest) -> Any:
+        """A request to a host agent put in flight (its replies: `_host_reply`)."""
+        return self.session.get(
+            self.keys.host_ctl(host),
+            payload=_ANY.encode(self._fenced(request)),
+            timeout=self.request_timeout,
+        )
+
+    def _host_reply(self, handler: Any, host: str) -> m.Reply:
+        """The reply to a request `_send_host` sent (an `Err` if none came in time)."""
+        reply = self._first_reply(handler, f"the host agent of {host}")
+        if isinstance(reply, m.Err) and reply.code == "stale_fence":
+            self.superseded = True
+        return reply
 
     def _host(self, spec: m.NodeSpec, request: m.HostRequest, what: str) -> Any:
         reply = self.client.host(spec.host, self._fenced(request), self.request_timeout)

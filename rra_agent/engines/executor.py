@@ -27,13 +27,15 @@ about one round trip (or one process start), not one per node:
    break); restarts (`SetImplementation`) stop and start again (a name is a node's identity
    on the bus, so old and new cannot overlap);
 3. **connect**, one batch: rewire subscribers (of swapped peers, of standby nodes' own
-   inputs, and the plan's `Rewire` steps) and export the state of the old nodes of every
-   swap. Every subscriber listens to the new producers *before* they produce: a
+   inputs, and the plan's `Rewire` steps) and export the state of the old nodes of the
+   warm swaps. Every subscriber listens to the new producers *before* they produce: a
    replacement publishes its first command the moment it is activated (or, cold, as soon
    as it runs), and a sample published before its subscriber is declared is lost (one
    producer period late; measured 3-5 ms of a 10 ms standby switch);
-4. ``stop-then-start``: the old nodes **stop**, then their replacements **start** (active,
-   with the exported state in their spec);
+4. ``stop-then-start``, while the connect batch is in flight: the old nodes **stop**, then
+   their replacements **start** (active, with the old one's state, which their host agent
+   exports before the stop: `ReplaceNode` with ``export``); recorded once the connect batch
+   is settled (an action of a unit that failed meanwhile is undone at once);
 5. **switch**, one batch: activate the new nodes (with the exported state), deactivate the
    old ones (unless they are stopped next and publish on other keys than their
    replacements: then the connect batch already cut them off), set parameters;
@@ -98,16 +100,21 @@ class Actuator(Protocol):
         pairs: list[tuple[NodeSpec, NodeSpec]],
         deadlines: Mapping[str, float] | None = None,
         on_stopped: Callable[[], None] | None = None,
+        export: Collection[str] = (),
     ) -> None:
         """Stop each pair's old node, as `stop` does, and start its new one once the old
-        one is gone, as `start` does; raise StepFailed naming the old nodes that did not
-        stop and the new ones that did not start (a new one whose old one did not stop is
-        not started). ``on_stopped`` is called once the old nodes are gone (the last call
-        counts)."""
+        one is gone, as `start` does, with the state of the old nodes named in ``export``;
+        raise StepFailed naming the old nodes that did not stop (or export) and the new ones
+        that did not start (a new one whose old one did not stop is not started).
+        ``on_stopped`` is called once the old nodes are gone (the last call counts)."""
         ...
 
-    def control(self, batch: list[Ctl]) -> list[m.Reply]:
-        """Send every request of the batch at once; one reply per request, in order.
+    def control(
+        self, batch: list[Ctl], meanwhile: Callable[[], None] | None = None
+    ) -> list[m.Reply]:
+        """Send every request of the batch at once; one reply per request, in order. With
+        ``meanwhile``, it is called once the requests are sent, before their replies are
+        read.
 
         A node that does not answer in time yields an `Err`; nothing is raised."""
         ...
@@ -356,6 +363,15 @@ class Transaction:
         return unit not in self.failed
 
     def push(self, unit: int, what: str, undo: Callable[[], None]) -> None:
+        """Remember how to undo an action of ``unit`` that was done; if the unit has failed
+        meanwhile (an action running beside another that failed it), undo it now."""
+        if unit in self.failed:
+            try:
+                undo()
+            except Exception as e:
+                error, nodes, first = self.failed[unit]
+                self.failed[unit] = (error, nodes, first or f"{what}: {e}")
+            return
         self.undo.setdefault(unit, []).append((what, undo))
 
     def fail(self, unit: int, error: str, nodes: Mapping[str, str] | None = None) -> None:
@@ -550,14 +566,15 @@ class Executor:
         swaps = [w for w in swaps if tx.ok(w.unit)]
         cold = [w for w in swaps if w.strategy == "stop-then-start"]
         warm = [w for w in swaps if w.strategy != "stop-then-start"]
-        states, cold_states = self._connect(tx, warm, cold, steps)
+        replaced: list[Callable[[Transaction], None]] = []
+        meanwhile = (lambda: replaced.append(self._replace(cold))) if cold else None
+        states = self._connect(tx, warm, steps, meanwhile)
         hot = [w.new.name for w in warm if self.replacement.hot(w.new.name) and tx.ok(w.unit)]
         if hot:  # the consumers' rewire was the switch: say so in the plan
             self._switched = self.clock()
             tx.records.append(StepRecord("select", ",".join(hot), 0.0, True))
-        cold = [w for w in cold if tx.ok(w.unit)]
-        if cold:
-            self._replace(tx, cold, cold_states)
+        for settle in replaced:
+            settle(tx)
             if any(tx.ok(w.unit) for w in cold):
                 self._switched = self.clock()
         warm = [w for w in warm if tx.ok(w.unit)]
@@ -665,13 +682,18 @@ class Executor:
         )
 
     def _connect(
-        self, tx: Transaction, warm: list[_Swap], cold: list[_Swap], steps
-    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        self,
+        tx: Transaction,
+        warm: list[_Swap],
+        steps,
+        meanwhile: Callable[[], None] | None = None,
+    ) -> dict[str, Any]:
         """Rewire every subscriber to its new producers and export the state of the old
-        nodes of all swaps, in one batch; the exported state of each warm and each cold
-        swap's new node (absent: not wanted). A cold swap's old node is stopped after this
-        batch, so its export costs no round trip of its own, and its consumers, rewired
-        here, hear nothing more from it while it stops."""
+        nodes of the warm swaps, in one batch; the exported state of each warm swap's new
+        node (absent: not wanted). ``meanwhile`` (the cold swaps, whose host agents export
+        their old nodes' state themselves) runs while the batch is in flight: a cold swap's
+        consumers, rewired here, may hear its old node until it is killed, never its new
+        one before they listen to it (its code runs only once the old one is gone)."""
         batch: list[Ctl] = []
         for w in warm:
             new = self.running[w.new.name]
@@ -681,17 +703,18 @@ class Executor:
             if isinstance(s, Rewire) and tx.ok(u):
                 spec = self.running[s.component]
                 batch += self._rewires(spec, {s.port: [self.keys.data(t) for t in s.topics]}, u)
-        wanted = [w for w in [*warm, *cold] if self._wants_state(w)]
+        wanted = [w for w in warm if self._wants_state(w)]
         exports = [Ctl(w.old, m.ExportState(), unit=w.unit) for w in wanted]
         if not batch and not exports:
-            return {}, {}
-        replies = self._control(tx, "connect", batch + exports)
-        states = {
+            if meanwhile is not None:
+                meanwhile()
+            return {}
+        replies = self._control(tx, "connect", batch + exports, meanwhile)
+        return {
             w.new.name: rep.result
             for w, rep in zip(wanted, replies[len(batch) :], strict=True)
             if isinstance(rep, m.Ok)
         }
-        return states, states
 
     def _switch(self, tx: Transaction, warm: list[_Swap], steps, states: dict[str, Any]) -> None:
         batch: list[Ctl] = []
@@ -760,28 +783,38 @@ class Executor:
         self.actuator.start([spec])
         self.running[spec.name] = spec
 
-    def _replace(self, tx: Transaction, cold: list[_Swap], states: Mapping[str, Any]) -> None:
-        """The ``stop-then-start`` swaps: each old node stopped and its new one (with the
-        state exported from the old) started once it is gone; recorded and undone as a
-        stop then a start (a failed start brings the old node back)."""
-        pairs = [
-            (w.old, msgspec.structs.replace(w.new, state=states.get(w.new.name)), w.unit)
-            for w in cold
-        ]
+    def _replace(self, cold: list[_Swap]) -> Callable[[Transaction], None]:
+        """Do the ``stop-then-start`` swaps: each old node stopped and its new one started
+        once it is gone, with the old one's state where it is wanted (exported by their host
+        agent); recorded and undone as a stop then a start (a failed start brings the old
+        node back) by the function returned, once the connect batch beside it is settled."""
+        pairs = [(w.old, w.new, w.unit) for w in cold]
+        exporting = [w.old for w in cold if self._wants_state(w)]
         t0 = self.clock()
         gone: list[float] = []
         failed = _failed_by(
             lambda: self.actuator.replace([(o, n) for o, n, _ in pairs],
                                           self.replacement.stop_deadline,
-                                          lambda: gone.append(self.clock())),
+                                          lambda: gone.append(self.clock()),
+                                          {o.name for o in exporting}),
             [s.name for o, n, _ in pairs for s in (o, n)],
         )  # fmt: skip
         t1 = self.clock()
         stopped = gone[-1] if gone else t1  # the start's line: from the old node's end
-        self._settle(tx, failed, [
-            ("stop", [(o, u) for o, _, u in pairs], self._stopped, self._unstop, stopped - t0),
-            ("start", [(n, u) for _, n, u in pairs], self._started, self._unstart, t1 - stopped),
-        ])  # fmt: skip
+
+        def settle(tx: Transaction) -> None:
+            # the exports were part of the stops (their host agents asked first): one line
+            _record(tx, "export_state", exporting,
+                    {o.name: failed[o.name] for o in exporting if o.name in failed},
+                    stopped - t0)  # fmt: skip
+            self._settle(tx, failed, [
+                ("stop", [(o, u) for o, _, u in pairs], self._stopped, self._unstop,
+                 stopped - t0),
+                ("start", [(n, u) for _, n, u in pairs], self._started, self._unstart,
+                 t1 - stopped),
+            ])  # fmt: skip
+
+        return settle
 
     def _batch(
         self,
@@ -815,22 +848,37 @@ class Executor:
         for action, specs, _, _, seconds in groups:
             mine = {s.name: failed[s.name] for s, _ in specs if s.name in failed}
             _record(tx, action, [s for s, _ in specs], mine, seconds)
+        late: list[tuple[int, str, Callable[[], None]]] = []  # of units failed meanwhile
         for action, specs, done, undo, _ in groups:
             for spec, unit in specs:
                 if spec.name not in failed:
                     done(spec)
-                    tx.push(unit, f"{action} {spec.name}", partial(undo, spec))
+                    entry: tuple[int, str, Callable[[], None]] = (
+                        unit, f"{action} {spec.name}", partial(undo, spec))  # fmt: skip
+                    if tx.ok(unit):
+                        tx.push(*entry)
+                    else:
+                        late.append(entry)
+        for entry in reversed(late):  # undone at once, the newest action first
+            tx.push(*entry)
         for action, specs, _, _, _ in groups:
             for spec, unit in specs:
                 if spec.name in failed:
                     why = failed[spec.name]
                     tx.fail(unit, f"{action} {spec.name}: {why}", {spec.name: why})
 
-    def _control(self, tx: Transaction, action: str, batch: list[Ctl]) -> list[m.Reply]:
-        """Send the batch; each successful request updates its node's spec and leaves its
+    def _control(
+        self,
+        tx: Transaction,
+        action: str,
+        batch: list[Ctl],
+        meanwhile: Callable[[], None] | None = None,
+    ) -> list[m.Reply]:
+        """Send the batch (``meanwhile`` runs while it is in flight: its time is in the
+        batch's line); each successful request updates its node's spec and leaves its
         inverse in its unit; a failed one fails its unit (undoing what the unit did)."""
         t0 = self.clock()
-        replies = self.actuator.control(batch)
+        replies = self.actuator.control(batch, meanwhile)
         seconds = self.clock() - t0
         for c, rep in zip(batch, replies, strict=True):
             bad = rep if isinstance(rep, m.Err) else None

@@ -34,6 +34,7 @@ import contextlib
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -45,7 +46,7 @@ import zenoh
 from rra_agent import text, trace
 from rra_agent.bus import counters
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import oks
+from rra_agent.bus.client import decoded, oks
 from rra_agent.bus.config import (
     KEEP_ALIVE,
     BusConfig,
@@ -71,6 +72,9 @@ from rra_agent.package.bundle import ModelBundle
 from rra_agent.ros2 import launch
 
 TICK = 0.02
+#: How long an agent waits for the state of a node it replaces (`ReplaceNode.export`): less
+#: than the engines' 2 s request timeout, so that they learn why it failed.
+EXPORT_TIMEOUT = 1.0
 _REQ = m.Codec[m.HostRequest](m.HostRequest)
 _EVT = m.Codec[m.EventMessage](m.EventMessage)
 _REPLY = m.Codec[m.Reply](m.Reply)
@@ -409,11 +413,18 @@ class HostAgent:
 
     # ---- requests (main thread) ---------------------------------------------------------
     def _serve(self, query: zenoh.Query, request: m.HostRequest) -> None:
+        def answer(reply: m.Reply) -> None:
+            query.reply(query.key_expr, _REPLY.encode(reply))
+            # Finalised now: a deferred answer's query is still referenced (by the callbacks
+            # of the get that exported the state), and its querier would wait for the end.
+            query.drop()
+
         try:
-            reply = self.handle(request, trusted=False)
+            reply = self.handle(request, trusted=False, answer=answer)
         except Exception as e:  # a bad request must never take the agent down
             reply = m.Err(message=f"{type(e).__name__}: {e}", code="error")
-        query.reply(query.key_expr, _REPLY.encode(reply))
+        if reply is not None:
+            answer(reply)
 
     def _refuse(self, code: str, message: str) -> m.Err:
         self.counters.rejected += 1
@@ -429,9 +440,17 @@ class HostAgent:
         self.fence = term
         return True
 
-    def handle(self, req: m.HostRequest, *, trusted: bool = True) -> m.Reply:
+    def handle(
+        self,
+        req: m.HostRequest,
+        *,
+        trusted: bool = True,
+        answer: Callable[[m.Reply], None] | None = None,
+    ) -> m.Reply | None:
         """Serve one request. Only this process's own calls are ``trusted`` (``rra up``
-        starting its engines); a request from the bus is checked against the model."""
+        starting its engines); a request from the bus is checked against the model. None:
+        the reply goes to ``answer`` later (a `ReplaceNode` that exports the old node's
+        state first)."""
         if not trusted:
             try:
                 req = self._admitted(req)
@@ -451,6 +470,12 @@ class HostAgent:
                 return self._start(spec)
             case m.StopNode(node=name, deadline=deadline):
                 return self._stop(name, deadline)
+            case m.ReplaceNode(node=name, spec=spec, deadline=deadline, export=True):
+                if answer is None:
+                    return m.Err(message="a ReplaceNode that exports is answered later: "
+                                 "send it on the bus", code="error")  # fmt: skip
+                self._export_then_replace(name, spec, deadline, answer)
+                return None
             case m.ReplaceNode(node=name, spec=spec, deadline=deadline):
                 return self._replace(name, spec, deadline)
             case m.UpdateSpec(specs=specs):
@@ -617,6 +642,48 @@ class HostAgent:
         if isinstance(started, m.Err):
             self._after.pop(old, None)
         return started
+
+    def _export_then_replace(
+        self, old: str, spec: m.NodeSpec, deadline: float | None, answer: Callable[[m.Reply], None]
+    ) -> None:
+        """`ReplaceNode` with ``export``: ask ``old`` for its state through this host's router
+        (the loop does not wait), then `_replace` it by ``spec`` with that state and answer.
+        A node that does not answer, or refuses, is left running."""
+        if self.session is None or not self._live(old):
+            answer(m.Err(message=f"node {old} is not running: no state to export", code="export"))
+            return
+        done = threading.Lock()
+
+        def finish(reply: m.Reply | None) -> None:
+            if done.acquire(blocking=False):  # the first reply, or the end of the query
+                self.loop.post(lambda: answer(self._replace_exported(old, spec, deadline, reply)))
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                bad = m.Err(message="a malformed answer", code="malformed")
+                finish(next(decoded([reply], _REPLY), bad))
+
+        trace.mark("agent:export", old)
+        self.session.get(
+            self.keys.node_ctl(old),
+            zenoh.handlers.Callback(on_reply, lambda: finish(None)),
+            payload=_ANY.encode(m.ExportState()),
+            timeout=EXPORT_TIMEOUT,
+        )
+
+    def _replace_exported(
+        self, old: str, spec: m.NodeSpec, deadline: float | None, reply: m.Reply | None
+    ) -> m.Reply:
+        """The rest of `_export_then_replace`, on the loop, given ``old``'s answer."""
+        trace.mark("agent:exported", old)
+        match reply:
+            case m.Ok(result=state):
+                return self._replace(old, msgspec.structs.replace(spec, state=state), deadline)
+            case m.Err(message=message):
+                why = f"node {old} did not export its state: {message}"
+            case _:
+                why = f"node {old} did not export its state within {EXPORT_TIMEOUT:g} s"
+        return m.Err(message=f"{why}; it runs on, {spec.name} was not started", code="export")
 
     def _live(self, name: str) -> bool:
         """Whether ``name``'s process (or container member) exists."""

@@ -22,6 +22,16 @@ class Holder(Node):
         fcntl.flock(self.device, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: held
         self._note("holds the device")
 
+    def export_state(self) -> dict[str, str]:
+        """Its state for a replacement (``export_fails``: it cannot give it)."""
+        if self.ctx.param("export_fails", False):
+            raise RuntimeError("the device is mid-transfer")
+        self._note("exported")
+        return {"from": self.ctx.name}
+
+    def import_state(self, state: dict[str, str]) -> None:
+        self._note(f"imported {state['from']}")
+
     def on_stop(self) -> None:
         time.sleep(float(self.ctx.param("stop_seconds", 0.0)))
         self._note("stopped")

@@ -663,13 +663,13 @@ class HostAgent:
         if self.session is None or not self._live(old):
             answer(m.Err(message=f"node {old} is not running: no state to export", code="export"))
             return
-        early = self._prepare_beside_export(old, spec)
         done = threading.Lock()
+        early: list[m.Reply | None] = []  # the reply of the replacement's early start
 
         def finish(reply: m.Reply | None) -> None:
             if done.acquire(blocking=False):  # the first reply, or the end of the query
-                self.loop.post(
-                    lambda: answer(self._replace_exported(old, spec, deadline, reply, early))
+                self.loop.post(  # after this handler: `early` is set by then
+                    lambda: answer(self._replace_exported(old, spec, deadline, reply, early[0]))
                 )
 
         def on_reply(reply: zenoh.Reply) -> None:
@@ -684,6 +684,7 @@ class HostAgent:
             payload=_ANY.encode(m.ExportState()),
             timeout=EXPORT_TIMEOUT,
         )
+        early.append(self._prepare_beside_export(old, spec))  # the export is on its way
 
     def _prepare_beside_export(self, old: str, spec: m.NodeSpec) -> m.Reply | None:
         """Spawn ``spec``'s process gated now, if the fork server can, to take its state from

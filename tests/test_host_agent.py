@@ -799,9 +799,7 @@ def test_a_replacement_that_exports_starts_the_new_node_with_the_old_one_s_state
     agent, procs, tmp_path
 ):
     """``ReplaceNode`` with ``export``: the agent asks holder_a for its state, then stops it,
-    and holder_b imports that state (after its constructor, once holder_a is gone). With
-    the fork server holder_b is prepared during the export and takes the state from the
-    file its host agent wrote before opening its gate (none is left)."""
+    and holder_b imports that state (after its constructor, once holder_a is gone)."""
     _, client, watch = agent
     start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.0))
     n = len(watch.states)
@@ -816,13 +814,11 @@ def test_a_replacement_that_exports_starts_the_new_node_with_the_old_one_s_state
         ("holder_b", "constructed"), ("holder_b", "holds the device"),
         ("holder_b", "imported holder_a"),
     ], notes  # fmt: skip
-    assert not list((tmp_path / "nodes").glob("*.state"))
 
 
 def test_a_replacement_whose_old_node_cannot_export_leaves_it_running(agent, procs, tmp_path):
     """The old node raises in ``export_state``: the reply is an ``Err`` (code ``export``)
-    saying so, holder_a runs on (same process) and holder_b's code never runs (prepared
-    behind its gate during the export, it is told to stop and leaves cleanly)."""
+    saying so, holder_a runs on (same process) and holder_b is never started."""
     _, client, watch = agent
     spec = holder_spec("holder_a", tmp_path, 0.0)
     spec = msgspec.structs.replace(spec, params={**spec.params, "export_fails": True})
@@ -833,14 +829,10 @@ def test_a_replacement_whose_old_node_cannot_export_leaves_it_running(agent, pro
     assert isinstance(reply, m.Err) and reply.code == "export", reply
     assert "holder_a did not export its state" in reply.message
     assert "mid-transfer" in reply.message
-    b = wait_until(lambda: watch.state("holder_b", "STOPPED", n), 10, "holder_b STOPPED")
-    # at its gate (exit 0) or still preparing (SIGTERM, its handlers not set yet): a stop
-    assert "exit status 0" in b.reason or "exit status -15" in b.reason, b
     with watch.lock:
         after = watch.states[n:]
-    assert not [s for s in after if s.node == "holder_a"], after
+    assert not [s for s in after if s.node in ("holder_a", "holder_b")], after
     assert pid_alive(first.pid)  # the same process runs on
-    assert [name for _, name, _ in witnessed(tmp_path)] == ["holder_a", "holder_a"]
 
 
 def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(

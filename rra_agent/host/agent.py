@@ -44,7 +44,7 @@ import msgspec
 import zenoh
 
 from rra_agent import text, trace
-from rra_agent.bus import counters, handover
+from rra_agent.bus import counters
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import decoded, oks
 from rra_agent.bus.config import (
@@ -173,9 +173,6 @@ class HostAgent:
         #: `ReplaceNode`s under way: the node stopping -> its replacement, which starts
         #: once it is gone, and whether it was spawned already (gated) or waits here.
         self._after: dict[str, tuple[m.NodeSpec, bool]] = {}
-        #: The state file of each replacement prepared beside the export of the node it
-        #: replaces (`ReplaceNode` with ``export``), until the state is written there.
-        self._handover: dict[str, Path] = {}
         self.local.gate_for = lambda spec: any(
             s.name == spec.name and spawned for s, spawned in self._after.values()
         )
@@ -192,13 +189,6 @@ class HostAgent:
         return msgspec.structs.replace(cfg, zid=node_zid(self.keys.system, spec.name))
 
     def _child_env(self, spec: m.NodeSpec) -> dict[str, str]:
-        """A child's own variables: the state file of a replacement prepared beside an
-        export (`rra_agent.bus.handover`), and `_ros2_env`."""
-        if spec.name in self._handover:
-            return {handover.STATE_ENV: str(self._handover[spec.name].resolve())}
-        return self._ros2_env(spec)
-
-    def _ros2_env(self, spec: m.NodeSpec) -> dict[str, str]:
         """A ROS 2 executable's Zenoh session configuration on a bus with certificates:
         written for it (``<log_dir>/<node>.zenoh.json5``, mode 0600) and named in its node's
         environment (``ZENOH_SESSION_CONFIG_URI``), which passes it on to the executable."""
@@ -657,20 +647,16 @@ class HostAgent:
         self, old: str, spec: m.NodeSpec, deadline: float | None, answer: Callable[[m.Reply], None]
     ) -> None:
         """`ReplaceNode` with ``export``: ask ``old`` for its state through this host's router
-        (the loop does not wait) while ``spec``'s process is prepared behind its gate if it
-        can be; then stop ``old`` and start ``spec`` with that state, and answer. A node that
-        does not answer, or refuses, is left running (the prepared one leaves its gate)."""
+        (the loop does not wait), then `_replace` it by ``spec`` with that state and answer.
+        A node that does not answer, or refuses, is left running."""
         if self.session is None or not self._live(old):
             answer(m.Err(message=f"node {old} is not running: no state to export", code="export"))
             return
         done = threading.Lock()
-        early: list[m.Reply | None] = []  # the reply of the replacement's early start
 
         def finish(reply: m.Reply | None) -> None:
             if done.acquire(blocking=False):  # the first reply, or the end of the query
-                self.loop.post(  # after this handler: `early` is set by then
-                    lambda: answer(self._replace_exported(old, spec, deadline, reply, early[0]))
-                )
+                self.loop.post(lambda: answer(self._replace_exported(old, spec, deadline, reply)))
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
@@ -684,77 +670,20 @@ class HostAgent:
             payload=_ANY.encode(m.ExportState()),
             timeout=EXPORT_TIMEOUT,
         )
-        early.append(self._prepare_beside_export(old, spec))  # the export is on its way
-
-    def _prepare_beside_export(self, old: str, spec: m.NodeSpec) -> m.Reply | None:
-        """Spawn ``spec``'s process gated now, if the fork server can, to take its state from
-        a file once its gate opens (`rra_agent.bus.handover`); its start's reply, or None."""
-        if (self.stopping or spec.name == old or self.catalog.container_of(spec.name)
-                or not self.local.can_gate(spec)):  # fmt: skip
-            return None
-        self._handover[spec.name] = self.log_dir / f"{spec.name}.state"
-        self._after[old] = (spec, True)
-        started = self._start(spec)  # gated: `self.local.gate_for` says so
-        if isinstance(started, m.Err):
-            self._after.pop(old, None)
-            self._handover.pop(spec.name, None)
-            return None
-        return started
 
     def _replace_exported(
-        self,
-        old: str,
-        spec: m.NodeSpec,
-        deadline: float | None,
-        reply: m.Reply | None,
-        early: m.Reply | None,
+        self, old: str, spec: m.NodeSpec, deadline: float | None, reply: m.Reply | None
     ) -> m.Reply:
-        """The rest of `_export_then_replace`, on the loop, given ``old``'s answer and the
-        reply of the replacement's early start (None: not started yet)."""
+        """The rest of `_export_then_replace`, on the loop, given ``old``'s answer."""
         trace.mark("agent:exported", old)
         match reply:
-            case m.Ok(result=state) if early is None:
+            case m.Ok(result=state):
                 return self._replace(old, msgspec.structs.replace(spec, state=state), deadline)
-            case m.Ok(result=state) if early is not None and not self.stopping:
-                with_state = msgspec.structs.replace(spec, state=state)
-                return self._stop_exported(old, with_state, deadline, early)
-            case m.Ok():
-                why = f"host {self.host} is shutting down"
             case m.Err(message=message):
                 why = f"node {old} did not export its state: {message}"
             case _:
                 why = f"node {old} did not export its state within {EXPORT_TIMEOUT:g} s"
-        if early is not None:
-            self._abandon_prepared(old, spec)
         return m.Err(message=f"{why}; it runs on, {spec.name} was not started", code="export")
-
-    def _stop_exported(
-        self, old: str, spec: m.NodeSpec, deadline: float | None, started: m.Reply
-    ) -> m.Reply:
-        """``old`` exported ``spec.state`` and its replacement waits at its gate: hand the
-        state over (before the gate can open) and stop ``old`` (its end opens the gate)."""
-        path = self._handover.pop(spec.name, None)
-        if path is not None:
-            handover.write(path, spec.state)
-        if spec.name in self.supervisor.procs:  # a restart after a crash takes it too
-            self.supervisor.replace_spec(spec.name, self._fenced(spec))
-        if old in self._after:
-            self._after[old] = (spec, True)
-        stopped = self._stop(old, deadline)
-        if isinstance(stopped, m.Err):
-            self._abandon_prepared(old, spec)
-            return stopped
-        return started
-
-    def _abandon_prepared(self, old: str, spec: m.NodeSpec) -> None:
-        """The replacement prepared beside an export that failed: told to stop (it leaves
-        its gate without running any code), its state file gone."""
-        self._after.pop(old, None)
-        path = self._handover.pop(spec.name, None)
-        if path is not None:
-            handover.discard(path)
-        if self._live(spec.name):
-            self._stop(spec.name)
 
     def _live(self, name: str) -> bool:
         """Whether ``name``'s process (or container member) exists."""

@@ -39,7 +39,6 @@ import msgspec
 import zenoh
 
 from rra_agent import trace
-from rra_agent.bus import handover
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
 from rra_agent.bus.counters import Refused, receive
@@ -71,8 +70,6 @@ def control_callback(core: NodeCore, wake: Callable[[], None]):
             request = got
             core.counters.received += 1
             reply = core.handle(request)
-            if trace.enabled():
-                trace.mark(f"node:{request.__struct_config__.tag}", core.spec.name)
         query.reply(query.key_expr, _REPLY.encode(reply), **CONTROL_QOS)
         if must_wake(core, request):
             wake()
@@ -343,17 +340,11 @@ class NodeRuntime:
             signal.set_wakeup_fd(-1)
 
     def _pass_gate(self) -> bool:
-        """Wait for the start gate; False if the node was told to stop meanwhile. Once it
-        opens, the state its host agent handed over (if any) is the node's to import."""
+        """Wait for the start gate; False if the node was told to stop meanwhile."""
         trace.mark("node:prepared", self.spec.name)
         assert self.gate is not None
         passed = self.gate(lambda: self._signalled)
         trace.mark("node:gate", self.spec.name)
-        path = os.environ.get(handover.STATE_ENV)
-        if passed and path:
-            found, state = handover.take(path)
-            if found:
-                self.spec = msgspec.structs.replace(self.spec, state=state)
         return passed
 
     # ---- what a runtime of another kind (`rra_agent.node.ros2`) changes ------------------

@@ -108,8 +108,10 @@ PHASES = {
     ],
     "stop-then-start": [
         *_ENGINES,
-        ("connect (rewire, export state)", "engine:replied"),
-        ("replace request -> old node killed", "agent:STOPPING"),
+        ("replace request sent (the rewire in flight)", "engine:replace"),
+        ("its host agent asks for the old node's state", "agent:export"),
+        ("state exported", "agent:exported"),
+        ("old node killed", "agent:STOPPING"),
         ("its exit reaped (gate opened)", "agent:STOPPED"),
         ("gate seen by the new node", "node:gate"),
         ("import_state, on_start, token", "node:token"),
@@ -121,6 +123,7 @@ MEANWHILE = {
     "stop-then-start": [
         ("(meanwhile) the spare prepares: session, ports", "node:request", "node:prepared"),
         ("(meanwhile) ready seen by the engine", "node:token", "engine:started"),
+        ("(meanwhile) the consumers' rewire answered", "engine:control", "engine:replied"),
     ],
 }
 

@@ -70,6 +70,8 @@ def control_callback(core: NodeCore, wake: Callable[[], None]):
             request = got
             core.counters.received += 1
             reply = core.handle(request)
+            if trace.enabled():
+                trace.mark(f"node:{request.__struct_config__.tag}", core.spec.name)
         query.reply(query.key_expr, _REPLY.encode(reply), **CONTROL_QOS)
         if must_wake(core, request):
             wake()

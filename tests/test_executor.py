@@ -197,11 +197,17 @@ def test_deploy_starts_everything_at_once_and_tracks_specs(quad):
     assert sim.ports["motor_cmd"].keys == [K.data("controller/motor_cmd")]
 
 
-def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
-    _, target = quad
+def cold_swap(target, *fail_on: tuple[str, str]) -> tuple[Any, Executor, FakeActuator]:
+    """The quadcopter deployed as Standard, then swapped to Proploss cold (stop-then-start)
+    with the actions ``fail_on`` failing: the outcome, the executor and its actuator."""
     ex, act = make("stop-then-start")
     deploy(ex, act, target("Standard"))
-    out = ex.execute(swap_plan(target))
+    act.fail_on.update(fail_on)
+    return ex.execute(swap_plan(target)), ex, act
+
+
+def test_stop_then_start_swap_transfers_state_in_the_spec(quad):
+    out, ex, act = cold_swap(quad[1])
     assert out.ok, out.error
     assert act.calls == [
         # the simulator's rewire is sent first and is in flight while the host agent exports
@@ -219,11 +225,7 @@ def test_a_cold_swap_whose_rewire_failed_meanwhile_is_undone_newest_first(quad):
     """The rewire fails while the replacement (beside it) succeeded: the unit is undone,
     the new controller stopped before the old one is started again (it may hold what the
     old one needs), and the simulator keeps listening to the old one."""
-    _, target = quad
-    ex, act = make("stop-then-start")
-    deploy(ex, act, target("Standard"))
-    act.fail_on.add(("rewire", "vehicle_simulator"))
-    out = ex.execute(swap_plan(target))
+    out, ex, act = cold_swap(quad[1], ("rewire", "vehicle_simulator"))
     assert not out.ok
     assert act.calls[-2:] == [("stop", "proploss_controller"),
                               ("start", "controller", True, None)]  # fmt: skip
@@ -233,11 +235,7 @@ def test_a_cold_swap_whose_rewire_failed_meanwhile_is_undone_newest_first(quad):
 
 
 def test_a_cold_swap_whose_old_node_cannot_export_stops_nothing(quad):
-    _, target = quad
-    ex, act = make("stop-then-start")
-    deploy(ex, act, target("Standard"))
-    act.fail_on.add(("export", "controller"))
-    out = ex.execute(swap_plan(target))
+    out, ex, act = cold_swap(quad[1], ("export", "controller"))
     assert not out.ok
     assert ("stop", "controller") not in act.calls
     assert not [c for c in act.calls if c[:2] == ("start", "proploss_controller")]

@@ -266,6 +266,9 @@ def test_a_replacement_s_plan_lines_time_the_stop_and_the_start_apart(quad):
     lines = {(r.action, r.node): r.seconds for r in out.records}
     assert lines[("stop", "controller")] == pytest.approx(0.010)
     assert lines[("start", "proploss_controller")] == pytest.approx(0.030)
+    # the rewire was in flight during the replacement: its line leaves those 40 ms out (the
+    # fake answers it in no time)
+    assert lines[("rewire motor_cmd of vehicle_simulator", "")] == pytest.approx(0.0)
 
 
 def test_a_stop_then_start_swap_stops_the_old_node_with_its_deadline(quad):

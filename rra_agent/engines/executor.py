@@ -874,12 +874,21 @@ class Executor:
         batch: list[Ctl],
         meanwhile: Callable[[], None] | None = None,
     ) -> list[m.Reply]:
-        """Send the batch (``meanwhile`` runs while it is in flight: its time is in the
-        batch's line); each successful request updates its node's spec and leaves its
-        inverse in its unit; a failed one fails its unit (undoing what the unit did)."""
+        """Send the batch (``meanwhile`` runs while it is in flight: the batch's lines leave
+        its time out, being the send and what was still to wait for after it); each
+        successful request updates its node's spec and leaves its inverse in its unit; a
+        failed one fails its unit (undoing what the unit did)."""
+        beside = [0.0]
+
+        def timed() -> None:
+            t = self.clock()
+            assert meanwhile is not None
+            meanwhile()
+            beside[0] = self.clock() - t
+
         t0 = self.clock()
-        replies = self.actuator.control(batch, meanwhile)
-        seconds = self.clock() - t0
+        replies = self.actuator.control(batch, timed if meanwhile is not None else None)
+        seconds = self.clock() - t0 - beside[0]
         for c, rep in zip(batch, replies, strict=True):
             bad = rep if isinstance(rep, m.Err) else None
             detail = "" if bad is None else f"{bad.message} ({bad.code})"

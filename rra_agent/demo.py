@@ -241,13 +241,32 @@ def configure(p: argparse.ArgumentParser) -> None:
         "as scenarios/quadcopter has it)",
     )
     p.add_argument("--no-adaptation", action="store_true", help="the control case: no RRA")
+    p.add_argument(
+        "--duration",
+        type=_duration,
+        help="stop the run at t = SECONDS (at least 6: the motor breaks at 5 s; default the "
+        "scenario's: 20 s, 10 s without adaptation)",
+    )
     p.add_argument("--run-dir", help="logs of the run (default: .rra/demo-<time>)")
     add_wide_argument(p, "the report's tables")
 
 
-def prepare_case(strategy: str, adaptation: bool, out: Path):
+def _duration(text: str) -> float:
+    """``--duration``: seconds, at least one after the motor failure."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 6.0 <= value <= 600.0:
+        raise argparse.ArgumentTypeError(f"{value:g} s: between 6 (the motor breaks at 5 s) "
+                                         "and 600")  # fmt: skip
+    return value
+
+
+def prepare_case(strategy: str, adaptation: bool, out: Path, duration: float | None = None):
     """The scenario case to run: the package's replacement model with ``strategy`` for the
-    Proploss controller, the simulator's topics recorded, a Rerun recording saved."""
+    Proploss controller, the simulator's topics recorded, a Rerun recording saved, stopped
+    at ``duration`` if given (the expectations' windows are cut by the end of the run)."""
     from rra_agent.package.loader import load_package
     from rra_agent.scenario.model import load_scenario
 
@@ -258,7 +277,11 @@ def prepare_case(strategy: str, adaptation: bool, out: Path):
         rep, components={**rep.components, "proploss_controller": strategy}
     )
     return dataclasses.replace(
-        case, replacement=rep, record_topics=RECORD, up_args=("--rerun", "save", str(out))
+        case,
+        replacement=rep,
+        record_topics=RECORD,
+        up_args=("--rerun", "save", str(out)),
+        duration=case.duration if duration is None else duration,
     )
 
 
@@ -281,7 +304,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out).resolve()
     run_dir = Path(args.run_dir or Path(".rra") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir = run_dir.resolve()
-    case = prepare_case(args.strategy, not args.no_adaptation, out)
+    case = prepare_case(args.strategy, not args.no_adaptation, out, args.duration)
     how = "no adaptation (control case)" if args.no_adaptation else f"{args.strategy} strategy"
     print(f"rra demo: quadcopter hovering at 2 m, motor 2 breaks at t = 5 s; {how}", flush=True)
     stop = threading.Event()

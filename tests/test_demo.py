@@ -118,10 +118,11 @@ def test_report_of_a_crash():
 def test_rra_demo_prints_the_report_and_writes_a_verifying_recording(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "rra_agent", "demo", "--out", str(tmp_path / "demo.rrd"),
-         "--run-dir", str(tmp_path / "run")],
+         "--run-dir", str(tmp_path / "run"), "--duration", "10"],
         capture_output=True, text=True, timeout=240, cwd=tmp_path,
     )  # fmt: skip
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert "stops at t = 10 s" in out.stdout  # the flight is scenarios/quadcopter's, cut short
     assert "fault -> first Proploss command applied" in out.stdout
     assert "STAYED AIRBORNE" in out.stdout
     assert f"rra view {tmp_path / 'demo.rrd'}" in out.stdout
@@ -150,3 +151,13 @@ def test_rra_demo_prints_the_report_and_writes_a_verifying_recording(tmp_path):
         ("TimeSeries", "Adaptation phases (ms)"): {p for p in paths if p.startswith("/timing/")},
     }  # fmt: skip
     assert {"/world/vehicle/thrust", "/world/trajectory", "/timing/switch"} <= paths
+
+
+@pytest.mark.parametrize("value", ["3", "soon"])
+def test_rra_demo_refuses_a_duration_that_ends_before_the_failure_in_one_line(tmp_path, value):
+    out = subprocess.run(
+        [sys.executable, "-m", "rra_agent", "demo", "--duration", value],
+        capture_output=True, text=True, timeout=60, cwd=tmp_path,
+    )  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "--duration" in out.stderr.splitlines()[-1], out.stderr

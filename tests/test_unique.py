@@ -75,3 +75,36 @@ def test_the_refusal_names_an_agent_whose_queryable_is_routed_after_its_tokens()
     agent = Agent(routed_after=3)
     assert unique.where(agent, KEYS, "local") == "host local (agent pid 4242, router tcp/x:1)"  # type: ignore[arg-type]
     assert agent.gets == 3
+
+
+class LateEngines(Agent):
+    """A running system whose agent's token is in but whose engine replicas' member tokens
+    come only from the ``members_after``-th liveliness query on."""
+
+    def __init__(self, members_after: int) -> None:
+        super().__init__(routed_after=1)
+        self.queries = 0
+        self.members_after = members_after
+
+    def liveliness(self) -> LateEngines:
+        return self
+
+    def get(self, key: str, *args: Any, **kw: Any) -> list[SimpleNamespace]:  # type: ignore[override]
+        if "payload" in kw:  # the agent's Ping
+            return super().get(key, kw["payload"], kw["timeout"])
+        self.queries += 1
+        if "/hostagent/" in key:
+            held = [KEYS.host_alive("local")]
+        elif "/member/" in key:
+            held = MEMBERS if self.queries >= self.members_after else []
+        else:
+            held = ALIVE
+        return [SimpleNamespace(ok=SimpleNamespace(key_expr=k)) for k in held]
+
+
+def test_a_system_whose_engines_come_after_its_agent_is_named_as_a_system() -> None:
+    bus = LateEngines(members_after=5)
+    why = unique.already_running(bus, KEYS, "local", engines=True, who="rra up")  # type: ignore[arg-type]
+    assert why is not None and why.startswith(
+        "system 'relay_system' already runs on this bus, its engines on host local (agent pid 4242"
+    ), why

@@ -126,21 +126,23 @@ def where(session: zenoh.Session, keys: Keys, host: str) -> str:
     return f"host {host} ({pid}{router})"
 
 
-def engines_host(session: zenoh.Session, keys: Keys, patience: float = 0.0) -> str | None:
+def engines_host(
+    session: zenoh.Session, keys: Keys, patience: float = 0.0, *, expected: bool = False
+) -> str | None:
     """The host whose agent runs engine replicas of the system, or None if none is up; "?"
-    if the host of none of them is known within ``patience`` seconds."""
+    if the host of none of them is known within ``patience`` seconds. ``expected``: a system
+    is known to be there (its agent's token), so its replicas' tokens, which may come in a
+    later batch, are waited for as long too (None only if none came)."""
     deadline = time.monotonic() + patience
     while True:
         members = tokens(session, f"{keys.prefix}/member/**")
-        if not members:
-            return None
         replicas = {key.rsplit("/", 1)[-1] for key in members}
-        for key in tokens(session, f"{keys.prefix}/alive/**"):
+        for key in tokens(session, f"{keys.prefix}/alive/**") if members else []:
             parsed = keys.parse_alive(key)
             if parsed is not None and parsed[1] in replicas:
                 return parsed[0]
-        if time.monotonic() >= deadline:
-            return "?"
+        if time.monotonic() >= deadline or not (members or expected):
+            return "?" if members else None
         time.sleep(0.02)
 
 
@@ -150,6 +152,9 @@ def already_running(
     """Why this agent must not serve (one line), or None when the bus has room for it."""
     system = keys.system
     other = engines_host(session, keys, LOCATE) if engines else None
+    agent_there = other is None and bool(tokens(session, keys.host_alive(host)))
+    if engines and agent_there:  # a system is there: its engines may be in the next batch
+        other = engines_host(session, keys, LOCATE, expected=True)
     if other is not None:
         at = where(session, keys, other) if other != "?" else "a host that does not answer"
         return (
@@ -157,7 +162,7 @@ def already_running(
             "refused (one system, one set of engines): stop it first, or run this one on "
             "another bus (another --connect)"
         )
-    if tokens(session, keys.host_alive(host)):
+    if agent_there:
         return (
             f"host {host} of system {system!r} already has its agent on this bus, "
             f"{where(session, keys, host)}; {who} refused: stop that agent first, or start "

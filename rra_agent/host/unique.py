@@ -108,8 +108,8 @@ def agent_identity(session: zenoh.Session, keys: Keys, host: str) -> dict[str, A
     `PING`. Asked again while nobody answers at all: a router that has just linked may know
     the agent's tokens before its queryable (the routes follow the tokens)."""
     deadline = time.monotonic() + PING
+    ping = _ANY.encode(m.Ping())
     while (left := deadline - time.monotonic()) > 0:
-        ping = _ANY.encode(m.Ping())
         for answer in oks(session.get(keys.host_ctl(host), payload=ping, timeout=left)):
             if isinstance(answer.result, dict):
                 return answer.result

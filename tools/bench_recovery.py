@@ -92,6 +92,12 @@ _REFLEX = [
     ("reflex fired in the consumer", "node:reflex"),
     *_SIM,
 ]
+#: Beside the reflex: the control loop's two hops (the fault's telemetry to the Proploss
+#: controller, its command back), which bound the first command whatever switches.
+_LOOP = [
+    ("(loop) fault -> the Proploss controller sees it", "sim:fault", "node:failure_known"),
+    ("(loop) -> its command received by the sim", "node:failure_known", "sim:command_from"),
+]
 PHASES = {
     "standby": _REFLEX,
     "hot-standby": _REFLEX,
@@ -120,6 +126,8 @@ PHASES = {
 }
 #: Phases that run beside those above: (label, the mark that starts it, the one that ends it).
 MEANWHILE = {
+    "standby": _LOOP,
+    "hot-standby": _LOOP,
     "stop-then-start": [
         ("(meanwhile) the spare prepares: session, ports", "node:request", "node:prepared"),
         ("(meanwhile) ready seen by the engine", "node:token", "engine:started"),
@@ -136,17 +144,27 @@ VARIANTS: dict[str, dict | None] = {
     "none": None,
 }
 CRITICAL = ("estimator", "controller", "proploss_controller", "vehicle_simulator")
+#: Layouts of the control loop: a process per component (as shipped), or the simulator and
+#: the controllers named in ``COLOCATED`` in one component container (as ros2_control runs
+#: its controllers in the hardware interface's process).
+LAYOUTS = ("processes", "co-located")
+COLOCATED = ("vehicle_simulator", "proploss_controller")
 
 
-def scheduled(package: Path, into: Path, scheduling: dict | None) -> Path:
+def scheduled(
+    package: Path, into: Path, scheduling: dict | None, layout: str = "processes"
+) -> Path:
     """A copy of ``package`` with its critical path (nodes, engines, agents) scheduled with
-    ``scheduling``, and nothing else scheduled (``None``: no scheduling anywhere)."""
+    ``scheduling``, and nothing else scheduled (``None``: no scheduling anywhere); with
+    ``layout`` ``co-located``, the components of `COLOCATED` in one container."""
     shutil.copytree(package, into)
     system = yaml.safe_load((into / "system.yaml").read_text())
     for c in system.get("components", []):
         c.pop("scheduling", None)
         if scheduling is not None and c["name"] in CRITICAL:
             c["scheduling"] = dict(scheduling)
+        if layout == "co-located" and c["name"] in COLOCATED:
+            c["container"] = "flight"
     (into / "system.yaml").write_text(yaml.safe_dump(system, sort_keys=False))
     manifest = yaml.safe_load((into / "rra.yaml").read_text())
     for key in ("engines", "agents"):
@@ -334,6 +352,11 @@ def plot(traces: dict[str, tuple[list[float], list[float]]], path: Path) -> bool
     return True
 
 
+def _variant(scheduling: str, layout: str) -> str:
+    """The label of a scheduling variant in a layout (the table's scheduling column)."""
+    return scheduling if layout == "processes" else f"{scheduling}, {layout}"
+
+
 def _goal(strategy: str, load: bool) -> str:
     goal = GOALS.get((strategy, load))
     if goal is None:
@@ -356,6 +379,14 @@ def main() -> int:
         "(repeatable; default: fifo and none)",
     )
     ap.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        action="append",
+        help="processes (a process per component, as shipped) or co-located (the simulator "
+        "and the Proploss controller in one component container); repeatable, default "
+        "processes",
+    )
+    ap.add_argument(
         "--keep",
         default="recovery-failures",
         help="folder where the run folders of failed or crashed runs are copied "
@@ -366,12 +397,21 @@ def main() -> int:
     if args.load:
         hog = subprocess.Popen([sys.executable, str(Path(__file__).parent / "cpuhog.py")])
         print(f"load: tools/cpuhog.py, {os.cpu_count()} busy loops")
-    chosen = args.scheduling or ["fifo", "none"]
+    scheds = args.scheduling or ["fifo", "none"]
+    layouts = args.layout or ["processes"]
+    chosen = [_variant(v, lay) for v in scheds for lay in layouts]
     names = args.only or list(STRATEGIES)
     accs = {(n, v): Acc(n, v) for n in names for v in chosen}
     try:
         with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
-            variants = {v: scheduled(SCENARIO.parent, Path(tmp) / v, VARIANTS[v]) for v in chosen}
+            variants = {
+                _variant(v, lay): scheduled(
+                    SCENARIO.parent, Path(tmp) / _variant(v, lay).replace(", ", "-"),
+                    VARIANTS[v], lay,
+                )
+                for v in scheds
+                for lay in layouts
+            }  # fmt: skip
             # Interleaved (A, B, A, B, ...): what the machine's other load does meanwhile
             # falls on every strategy alike.
             for i in range(args.runs):
@@ -389,8 +429,10 @@ def main() -> int:
     )
     print(
         "scheduling of the critical path: "
-        + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in chosen)
+        + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in scheds)
     )
+    if "co-located" in layouts:
+        print(f"co-located: {', '.join(COLOCATED)} in one component container")
     print_table(
         ["strategy", "scheduling", "runs", "received ms (median / p99)",
          "applied ms (median / p99)", "goal ms (median / p99)",
@@ -423,7 +465,8 @@ class Acc:
         strategy, delay, reflexes = STRATEGIES[name]
         case = make_case(strategy, reflex_variant(package, reflexes))
         kept = Path(args.keep) if args.keep else None
-        run_dir = tmp / f"{name.replace(' ', '_').replace(',', '')}-{variant}-{i}"
+        label = f"{name}-{variant}".replace(", ", "-").replace(" ", "_")
+        run_dir = tmp / f"{label}-{i}"
         try:
             report, rec, ph, got, conf = one_run(case, delay, run_dir, name)
         except RunFailed as e:

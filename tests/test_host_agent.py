@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -855,3 +856,50 @@ def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code
     assert "exit status 0" in stopped.reason
     wait_until(lambda: watch.state("holder_a", "STOPPED", n), 10, "holder_a STOPPED")
     assert "holder_b" not in [name for _, name, _ in witnessed(tmp_path)]
+
+
+def _cpu_latency_settable() -> bool:
+    from rra_agent.host.scheduling import CPU_LATENCY_DEVICE, cpu_latency
+
+    return cpu_latency() is not None and os.access(CPU_LATENCY_DEVICE, os.W_OK)
+
+
+@pytest.mark.skipif(not _cpu_latency_settable(), reason="/dev/cpu_dma_latency is not writable here")
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGKILL], ids=["stopped", "killed"])
+def test_a_host_agent_holds_its_host_s_cpu_latency_while_it_runs(procs, bus, tmp_path, stop):
+    """``agents: {cpu_latency_us: 0}`` in rra.yaml: while the host agent runs, the kernel
+    keeps every CPU within 0 us of waking (PM QoS); once it is gone, stopped or killed, the
+    request is too (none of the processes it started keeps it)."""
+    from rra_agent.host.scheduling import cpu_latency
+
+    before = cpu_latency()
+    if not before:
+        pytest.skip(f"another process holds the CPU latency at {before} us already")
+    package = tmp_path / "pkg"
+    shutil.copytree(PACKAGE, package)
+    manifest = package / "rra.yaml"
+    manifest.write_text(manifest.read_text() + "agents: {cpu_latency_us: 0}\n")
+    proc = procs.spawn(
+        [sys.executable, "-m", "rra_agent.host.agent", "--package", str(package), "--host",
+         "h1", "--hub", "--log-dir", str(tmp_path / "n"), "--connect", bus.connect[0],
+         "--no-multicast", "--lease-ms", "500"],
+        name="agent",
+    )  # fmt: skip
+    client = BusClient(bus, SYSTEM)
+    try:
+        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
+                   15, "the host agent's token")  # fmt: skip
+        assert cpu_latency() == 0
+        proc.send_signal(stop)
+        assert proc.wait(15) == (0 if stop == signal.SIGINT else -signal.SIGKILL)
+        wait_until(lambda: cpu_latency() == before, 5, "the request dropped")
+    finally:
+        client.close()
+
+
+def test_a_refused_cpu_latency_is_one_line(tmp_path):
+    from rra_agent.host.scheduling import hold_cpu_latency
+
+    line = hold_cpu_latency(0, str(tmp_path / "no_such_device"))
+    assert line == (f"CPU latency 0 us refused ({tmp_path / 'no_such_device'}: "
+                    "No such file or directory)")  # fmt: skip

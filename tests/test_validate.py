@@ -407,6 +407,17 @@ def test_planted_reference_error_is_located(
     assert matching[0].source_line == text.splitlines()[expected.line - 1]
 
 
+def test_a_cpu_latency_out_of_range_is_located(tmp_path: Path) -> None:
+    root = copy_mini(tmp_path)
+    text = plant(root, "rra.yaml", "[Detection]", "[Detection]\nagents: {cpu_latency_us: -5}")
+    with pytest.raises(ModelError) as info:
+        load_package(root, validate=False)
+    assert info.value.location == Location(
+        str(root / "rra.yaml"), *position(text, "{cpu_latency_us")
+    )
+    assert "agents: cpu_latency_us must be 0..2000000000, got -5" in str(info.value)
+
+
 def test_a_broken_function_module_is_reported_not_raised(tmp_path: Path) -> None:
     root = copy_mini(tmp_path)
     (root / "broken_functions.py").write_text("import no_such_dependency_xyz\n\ndef f(x): ...\n")

@@ -17,7 +17,10 @@ copy of scenarios/quadcopter: ``fifo`` (SCHED_FIFO 50), ``nice`` (nice -10: more
 the normal scheduler, no real-time budget to exhaust) and ``none`` (no scheduling anywhere);
 ``--scheduling`` picks them (default fifo and none). ``--load`` runs a busy loop on every
 core (``tools/cpuhog.py``) during all runs. Where the kernel refuses a scheduling, the runs
-say so and its rows are the same as the others.
+say so and its rows are the same as the others. ``--layout co-located`` runs the simulator
+and the Proploss controller in one component container (beside the usual process per
+component with ``--layout processes``); ``--cpu-latency 0`` has the host agent keep the CPUs
+out of idle halts while the system runs (``agents: cpu_latency_us``, Linux PM QoS).
 
 Prints median and p99 per strategy beside the goals, for the first Proploss command received
 by the simulator (the switch done) and for the first physics step it drives (the simulator
@@ -30,6 +33,7 @@ simulator's first Proploss command received -> first physics step driven by it. 
 PNG of altitude over time around the failure (needs matplotlib: ``pip install -e '.[bench]'``).
 
     .venv/bin/python tools/bench_recovery.py [--runs 20] [--load] [--plot recovery.png]
+        [--layout processes --layout co-located] [--cpu-latency 0]
 """
 
 from __future__ import annotations
@@ -152,11 +156,17 @@ COLOCATED = ("vehicle_simulator", "proploss_controller")
 
 
 def scheduled(
-    package: Path, into: Path, scheduling: dict | None, layout: str = "processes"
+    package: Path,
+    into: Path,
+    scheduling: dict | None,
+    layout: str = "processes",
+    cpu_latency: int | None = None,
 ) -> Path:
     """A copy of ``package`` with its critical path (nodes, engines, agents) scheduled with
     ``scheduling``, and nothing else scheduled (``None``: no scheduling anywhere); with
-    ``layout`` ``co-located``, the components of `COLOCATED` in one container."""
+    ``layout`` ``co-located``, the components of `COLOCATED` in one container; with
+    ``cpu_latency``, the host agent holding the CPUs' wake-up latency (``agents:
+    cpu_latency_us``)."""
     shutil.copytree(package, into)
     system = yaml.safe_load((into / "system.yaml").read_text())
     for c in system.get("components", []):
@@ -171,6 +181,8 @@ def scheduled(
         manifest.pop(key, None)
         if scheduling is not None:
             manifest[key] = {"scheduling": dict(scheduling)}
+    if cpu_latency is not None:
+        manifest.setdefault("agents", {})["cpu_latency_us"] = cpu_latency
     (into / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     return into
 
@@ -387,6 +399,13 @@ def main() -> int:
         "processes",
     )
     ap.add_argument(
+        "--cpu-latency",
+        type=int,
+        metavar="US",
+        help="the host agent holds its CPUs' wake-up latency at US microseconds while the "
+        "system runs (agents: cpu_latency_us in rra.yaml; Linux PM QoS, root); default: not",
+    )
+    ap.add_argument(
         "--keep",
         default="recovery-failures",
         help="folder where the run folders of failed or crashed runs are copied "
@@ -407,7 +426,7 @@ def main() -> int:
             variants = {
                 _variant(v, lay): scheduled(
                     SCENARIO.parent, Path(tmp) / _variant(v, lay).replace(", ", "-"),
-                    VARIANTS[v], lay,
+                    VARIANTS[v], lay, args.cpu_latency,
                 )
                 for v in scheds
                 for lay in layouts
@@ -431,6 +450,8 @@ def main() -> int:
         "scheduling of the critical path: "
         + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in scheds)
     )
+    if args.cpu_latency is not None:
+        print(f"CPU wake-up latency held at {args.cpu_latency} us (agents: cpu_latency_us)")
     if "co-located" in layouts:
         print(f"co-located: {', '.join(COLOCATED)} in one component container")
     print_table(

@@ -269,7 +269,7 @@ def _run(
         ros2=dep.package.manifest.ros2,
     )
     catalog.add_builtins(specs)
-    schedule_self(dep.package.manifest.agents.scheduling, "rra up")
+    schedule_self(dep.package.manifest.agents, "rra up")
     agent = HostAgent(
         dep.system,
         args.host,

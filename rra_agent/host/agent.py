@@ -67,7 +67,7 @@ from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
 from rra_agent.host.supervisor import LIVE, Notice, Proc, State, StopPolicy, Supervisor, Transition
-from rra_agent.models.system import Scheduling
+from rra_agent.models.manifest import AgentSettings
 from rra_agent.package.bundle import ModelBundle
 from rra_agent.ros2 import launch
 
@@ -934,13 +934,25 @@ def configure(parser) -> None:  # argparse.ArgumentParser
     add_bus_arguments(parser)
 
 
-def schedule_self(wanted: Scheduling, who: str) -> None:
-    """The host agent's own scheduling (the manifest's ``agents``), before its session (and
-    the router's threads) exists; a refusal is one warning line."""
-    if wanted.is_default:
-        return
-    for problem in scheduling.apply(wanted, reset_on_fork=True):
+def schedule_self(settings: AgentSettings, who: str) -> None:
+    """The host agent's own scheduling and its host's CPU wake-up latency (the manifest's
+    ``agents``), before its session (and the router's threads) exists; a refusal is one
+    warning line, a latency held one line too (it costs the host's idle power)."""
+    problems = [] if settings.scheduling.is_default else scheduling.apply(
+        settings.scheduling, reset_on_fork=True
+    )
+    for problem in problems:
         print(f"{who}: scheduling: {problem}; running without it", file=sys.stderr, flush=True)
+    us = settings.cpu_latency_us
+    if us is None:
+        return
+    refused = scheduling.hold_cpu_latency(us)
+    line = (
+        f"{refused}; running without it"
+        if refused
+        else f"CPU wake-up latency held at {us} us while this agent runs (PM QoS)"
+    )
+    print(f"{who}: {line}", file=sys.stderr, flush=True)
 
 
 def run(args) -> int:  # argparse.Namespace
@@ -955,7 +967,7 @@ def run(args) -> int:  # argparse.Namespace
         dep.configured, args.host, package_root=dep.package.root, default_host=args.hub,
         ros2=dep.package.manifest.ros2,
     )
-    schedule_self(dep.package.manifest.agents.scheduling, f"rra agent {args.host}")
+    schedule_self(dep.package.manifest.agents, f"rra agent {args.host}")
     agent = HostAgent(
         dep.system,
         args.host,

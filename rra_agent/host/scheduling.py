@@ -6,11 +6,13 @@ server's child, or the ``preexec_fn`` of an exec'd one), so every thread the nod
 starts (Zenoh's included) inherits it; `apply_to_process` also sets the threads already
 there (a spare's session opened ahead). `differences` is the host agent's check once the
 node is ready: what was asked for and not granted, one line each, for a warning event.
+`hold_cpu_latency` is a host agent's request for its host's CPU wake-up latency.
 """
 
 from __future__ import annotations
 
 import os
+import struct
 import threading
 
 from rra_agent.models.system import Scheduling
@@ -107,3 +109,41 @@ def differences(wanted: Scheduling, pid: int) -> list[str]:
     if wanted.cpus and sorted(wanted.cpus) != got.cpus:
         out.append(f"asked for CPUs {wanted.cpus}, runs on {got.cpus}")
     return out
+
+
+#: Linux's CPU latency PM QoS: a request holds while the file it was written to stays open.
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+#: The descriptors of this process's requests (closed by the kernel as the process ends).
+_held: list[int] = []
+
+
+def hold_cpu_latency(us: int, device: str = CPU_LATENCY_DEVICE) -> str | None:
+    """Ask the kernel to keep every CPU's wake-up latency within ``us`` microseconds until
+    this process ends (the request is the open file: the kernel drops it when its last
+    descriptor closes, a kill -9 included; close-on-exec, so no process started from here
+    keeps it). What was refused, one line; None once held."""
+    try:
+        fd = os.open(device, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError as e:
+        return f"CPU latency {us} us refused ({device}: {e.strerror})"
+    try:
+        os.write(fd, struct.pack("=i", us))
+    except OSError as e:
+        os.close(fd)
+        return f"CPU latency {us} us refused ({device}: {e.strerror})"
+    _held.append(fd)
+    return None
+
+
+def cpu_latency(device: str = CPU_LATENCY_DEVICE) -> int | None:
+    """The CPU wake-up latency the kernel currently keeps (us, the strictest request; its
+    default is 2000000000: none), or None where it cannot be read."""
+    try:
+        fd = os.open(device, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        raw = os.read(fd, 4)
+    finally:
+        os.close(fd)
+    return struct.unpack("=i", raw)[0] if len(raw) == 4 else None

@@ -20,6 +20,25 @@ class ProcessSettings(FrozenModel, frozen=True):
     scheduling: Scheduling = Scheduling()
 
 
+#: The largest CPU wake-up latency a host may be asked for (Linux's PM QoS takes an s32).
+MAX_CPU_LATENCY_US = 2_000_000_000
+
+
+class AgentSettings(ProcessSettings, frozen=True):
+    """How the host agents run: their own scheduling, and what they ask of their host."""
+
+    #: While a host agent runs, its host's CPUs are asked to wake within this many
+    #: microseconds (Linux PM QoS, ``/dev/cpu_dma_latency``; needs root): 0 keeps idle CPUs
+    #: polling instead of halting, which takes the idle exit (on a virtual machine, the
+    #: hypervisor's) off every wake-up of the loop, at the cost of power. None: not asked.
+    cpu_latency_us: int | None = None
+
+    def __post_init__(self) -> None:
+        us = self.cpu_latency_us
+        if us is not None and not 0 <= us <= MAX_CPU_LATENCY_US:
+            raise ValueError(f"agents: cpu_latency_us must be 0..{MAX_CPU_LATENCY_US}, got {us}")
+
+
 class ReflexSettings(FrozenModel, frozen=True):
     """Reflexes (docs/architecture.md, Reflexes): rules whose decision the engines compile
     ahead into the node that has to switch, which then switches on the sample itself."""
@@ -68,9 +87,10 @@ class Manifest(FrozenModel, frozen=True):
     #: How the engine processes (Context Monitor, Adaptation Engine, Run-time Resolution
     #: Engine) are scheduled: they are on every adaptation's critical path.
     engines: ProcessSettings = ProcessSettings()
-    #: How the host agents (``rra up``, ``rra agent``) schedule themselves: each runs its
-    #: host's Zenoh router, which every sample of the host passes through.
-    agents: ProcessSettings = ProcessSettings()
+    #: How the host agents (``rra up``, ``rra agent``) schedule themselves (each runs its
+    #: host's Zenoh router, which every sample of the host passes through), and the CPU
+    #: wake-up latency they ask of their host.
+    agents: AgentSettings = AgentSettings()
     #: Whether and how the engines delegate decisions they have planned to nodes.
     reflexes: ReflexSettings = ReflexSettings()
     #: The system's ROS 2 side (None: it has none).

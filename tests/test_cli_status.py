@@ -21,7 +21,7 @@ from pathlib import Path
 
 import msgspec
 import pytest
-from conftest import ROOT, wait_until
+from conftest import ROOT, edit_yaml, package_copy, wait_until
 from test_secure_system import secure  # noqa: F401 (the fixture)
 
 from rra_agent.bus import messages as m
@@ -383,3 +383,21 @@ def test_an_operator_with_certificates_names_the_system(secure, capsys) -> None:
 
     out = wait_until(engine_up, 60, "the engine's status", interval=0.2)
     assert any(line.split()[:2] == ["local", "up"] for line in out.splitlines()), out
+
+
+@pytest.mark.skipif(
+    not os.access("/dev/cpu_dma_latency", os.W_OK), reason="/dev/cpu_dma_latency is not writable"
+)
+def test_status_shows_the_cpu_latency_a_host_agent_holds(system, bus, tmp_path, capsys) -> None:
+    """What is in effect: ``agents: {cpu_latency_us: 0}`` held by the host agent is in its
+    host's line and in ``--json`` (the kernel's value, not the model's)."""
+    pkg = package_copy(tmp_path)
+    edit_yaml(pkg / "rra.yaml", lambda d: d.update(agents={"cpu_latency_us": 0}))
+    system(pkg)
+    ep = bus.connect[0]
+    rc, out, err = run(["status", "--connect", ep], capsys)
+    assert rc == 0, err
+    host = next(line for line in out.splitlines() if line.startswith("local "))
+    assert host.endswith(", CPU latency 0 us"), host
+    rc, raw, _ = run(["status", "--connect", ep, "--json"], capsys)
+    assert [a["cpu_latency_us"] for a in json.loads(raw)["host_agents"]] == [0]

@@ -388,6 +388,7 @@ def _host_agents(
                 "pid": info.get("pid"),
                 "listen": info.get("listen", []),
                 "connect": info.get("connect", []),
+                "cpu_latency_us": info.get("cpu_latency_us"),
                 "nodes": len(live),
             }
         )

@@ -184,13 +184,16 @@ def reachable_section(status: dict[str, Any], wide: bool) -> list[str]:
 
 
 def _hosts_section(status: dict[str, Any], wide: bool) -> list[str]:
-    """One line per host agent: up or not, its router's endpoints, its live nodes."""
+    """One line per host agent: up or not, its router's endpoints, its live nodes (and the
+    CPU latency its host keeps, where the agent holds one)."""
     agents = status.get("host_agents", [])
     if not agents:
         return ["hosts       -"]
     lines = [f"{'HOST':<16} {'AGENT':<11} {'NODES':>5}  ROUTER"]
     for a in agents:
         endpoints = [f"listens {ep}" for ep in a["listen"]] + [f"links {ep}" for ep in a["connect"]]
+        if a.get("cpu_latency_us") is not None:
+            endpoints.append(f"CPU latency {a['cpu_latency_us']} us")
         router = ", ".join(endpoints) or "-"
         line = f"{cut(a['host'], 16, wide):<16} {a['state']:<11} {a['nodes']:>5}  {router}"
         lines.append(cut(line, WIDTH, wide))

@@ -742,8 +742,9 @@ class HostAgent:
         ]
 
     def identity(self) -> dict[str, Any]:
-        """Its answer to a ``Ping``: pid, host, its router's endpoints (``rra status``) and
-        its fork server's pid (None while it has none)."""
+        """Its answer to a ``Ping``: pid, host, its router's endpoints (``rra status``), its
+        fork server's pid (None while it has none) and, while it holds a CPU latency request
+        (``agents: cpu_latency_us``), the latency the kernel keeps (None otherwise)."""
         zygote = self.local.zygote
         return {
             "pid": os.getpid(),
@@ -751,6 +752,7 @@ class HostAgent:
             "listen": list(self.session_bus.listen),
             "connect": list(self.session_bus.connect),
             "fork_server": zygote.pid if zygote is not None else None,
+            "cpu_latency_us": scheduling.cpu_latency() if scheduling.holds_cpu_latency() else None,
         }
 
     def stats(self) -> m.ProcessStats:

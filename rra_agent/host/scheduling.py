@@ -135,6 +135,11 @@ def hold_cpu_latency(us: int, device: str = CPU_LATENCY_DEVICE) -> str | None:
     return None
 
 
+def holds_cpu_latency() -> bool:
+    """Whether this process holds a CPU latency request (`hold_cpu_latency`)."""
+    return bool(_held)
+
+
 def cpu_latency(device: str = CPU_LATENCY_DEVICE) -> int | None:
     """The CPU wake-up latency the kernel currently keeps (us, the strictest request; its
     default is 2000000000: none), or None where it cannot be read."""

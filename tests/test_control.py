@@ -358,9 +358,10 @@ def test_proploss_node_is_silent_until_it_knows_the_failed_motor() -> None:
     assert sum(p.k_f * w * w for w in cmd) == pytest.approx(p.weight, rel=0.05)
 
 
-def test_the_recovery_rehearsal_commands_for_every_failed_motor(monkeypatch) -> None:
-    """The rehearsal runs the code of a recovery (a failure latched, commands computed), for
-    each motor, not `update`'s early return while no motor is known to have failed."""
+def test_the_proploss_node_rehearses_a_recovery_for_every_failed_motor(monkeypatch) -> None:
+    """Its rehearsal (`Node.rehearse`, run before its constructor) runs the code of a
+    recovery (a failure latched, commands computed) for each motor, not `update`'s early
+    return while no motor is known to have failed."""
     seen: list[tuple[int | None, bool]] = []
     update = c.ProplossController.update
 
@@ -370,31 +371,5 @@ def test_the_recovery_rehearsal_commands_for_every_failed_motor(monkeypatch) -> 
         return out
 
     monkeypatch.setattr(c.ProplossController, "update", counting)
-    c.rehearse_recovery()
+    ProplossController.rehearse()
     assert sorted(set(seen)) == [(k, True) for k in range(4)]
-
-
-def test_a_standby_proploss_node_rehearses_once_and_a_replacement_does_not(
-    monkeypatch,
-) -> None:
-    """A standby (the failed motor unknown) rehearses at its first estimate, once, and
-    publishes nothing; a replacement that imports the failed motor commands at once and
-    does not rehearse (that would delay its first command)."""
-    calls: list[int] = []
-    monkeypatch.setattr(c, "rehearse_recovery", lambda *a, **k: calls.append(1))
-    q = Quadcopter(position=(0.0, 0.0, ALT))
-    standby = NodeHarness(
-        ProplossController, name="proploss_controller", params={"failed_motor": -1},
-        ports=CTL_PORTS,
-    )  # fmt: skip
-    for _ in range(3):
-        standby.send("estimate", q.true_state())
-    assert calls == [1] and standby.outputs("motor_cmd") == []
-    replacement = NodeHarness(
-        ProplossController, name="proploss_controller", params={"failed_motor": -1},
-        ports=CTL_PORTS,
-    )  # fmt: skip
-    ok = replacement.request(m.ImportState(state={"integral": [0.0] * 3, "failed_motor": 2}))
-    assert isinstance(ok, m.Ok)
-    replacement.send("estimate", q.true_state())
-    assert calls == [1] and len(replacement.outputs("motor_cmd")) == 1

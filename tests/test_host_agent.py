@@ -80,7 +80,9 @@ def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
 def agent(procs, bus, tmp_path, request):
     """A host agent of host h1; ``exec`` (indirect parametrisation): without the fork server,
     each node its own ``python -m rra_agent.node``."""
-    env = {"RRA_FORK_SERVER": "0"} if request.param == "exec" else None
+    env = {"HOSTTEST_WITNESS": str(tmp_path / "witness")}  # device.Holder's rehearsals
+    if request.param == "exec":
+        env["RRA_FORK_SERVER"] = "0"
     proc = procs.python(
         "rra_agent.host.agent",
         "--package", str(PACKAGE), "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
@@ -758,9 +760,12 @@ def holder_spec(name: str, tmp: Path, stop_seconds: float) -> m.NodeSpec:
 TOPIC = {"holder_a": "src", "holder_b": "src_b"}
 
 
-def witnessed(tmp: Path) -> list[tuple[float, str, str]]:
+def witnessed(tmp: Path, rehearsals: bool = False) -> list[tuple[float, str, str]]:
+    """(time, node, what) of each line of ``tmp/witness``; ``rehearsals``: the class's
+    rehearsals instead, as (time, "rehearsal", pid)."""
     lines = (tmp / "witness").read_text().splitlines()
-    return [(float(t), name, what) for t, name, what in (x.split(" ", 2) for x in lines)]
+    notes = [(float(t), name, what) for t, name, what in (x.split(" ", 2) for x in lines)]
+    return [n for n in notes if (n[1] == "rehearsal") == rehearsals]
 
 
 @pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)
@@ -793,6 +798,12 @@ def test_a_replacement_runs_none_of_its_code_before_the_node_it_replaces_is_gone
     b_built = [t for t, name, what in notes if name == "holder_b" and what == "constructed"]
     assert len(b_built) == 1 and b_built[0] > a_stopped, notes
     assert ("holder_b", "holds the device") in [(name, what) for _, name, what in notes]
+    # Its class rehearsed in its own process before its constructor: with the fork server
+    # while holder_a was stopping (off the critical path), without it once holder_a was gone.
+    rehearsed = [t for t, _, pid in witnessed(tmp_path, rehearsals=True) if pid == str(running.pid)]
+    assert len(rehearsed) == 1 and rehearsed[0] < b_built[0], notes
+    if request.node.callspec.params["agent"] == "fork-server":
+        assert rehearsed[0] < a_stopped, notes
 
 
 @pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)
@@ -903,3 +914,16 @@ def test_a_refused_cpu_latency_is_one_line(tmp_path):
     line = hold_cpu_latency(0, str(tmp_path / "no_such_device"))
     assert line == (f"CPU latency 0 us refused ({tmp_path / 'no_such_device'}: "
                     "No such file or directory)")  # fmt: skip
+
+
+def test_a_rehearsal_that_raises_is_a_log_line_and_the_node_starts(capsys):
+    from rra_agent.node import Node
+    from rra_agent.node.runtime import rehearse_class
+
+    class Clumsy(Node):
+        @classmethod
+        def rehearse(cls) -> None:
+            raise ValueError("no scratch device")
+
+    rehearse_class(Clumsy, "clumsy")  # does not raise
+    assert capsys.readouterr().err == "[clumsy] rehearse failed: ValueError: no scratch device\n"

@@ -105,6 +105,17 @@ class Node:
         cold start (stop-then-start) then costs a fork, not a computation. Must not open
         files, threads or sessions (they would be shared by every forked node)."""
 
+    @classmethod
+    def rehearse(cls) -> None:
+        """Run, on scratch objects, the code the node needs at once once it runs (a
+        controller's first command): called in the node's own process before its
+        constructor, while a replacement waits for the node it replaces to stop. A process
+        forked from the fork server copies the pages a code path writes the first time it
+        runs it (reference counts, specialised bytecode: 0.3-2 ms for a controller's update);
+        rehearsed, that is paid before the node is on the critical path. Must have no effect
+        outside its own objects (publish nothing, open nothing). An exception is logged; the
+        node starts anyway."""
+
     def on_start(self) -> None:
         """Called once, after ports and parameters are set up and before the node is ready."""
 

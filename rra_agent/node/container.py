@@ -54,6 +54,7 @@ from rra_agent.node.runtime import (
     control_callback,
     must_wake,
     reflex_reporter,
+    rehearse_class,
 )
 
 _REQ = m.Codec[m.ContainerRequest](m.ContainerRequest)
@@ -225,6 +226,7 @@ class ContainerRuntime:
         queryable = None
         try:
             node_cls = load_node_class(spec.implementation, spec.path)  # type: ignore[arg-type]
+            rehearse_class(node_cls, spec.name)
             # _stderr: the core prefixes its lines with the component's name itself.
             core = NodeCore(
                 spec, node_cls, transport, logger=_stderr, pid=os.getpid(), contained=True,

@@ -89,6 +89,18 @@ def reflex_reporter(session: zenoh.Session, key: str) -> Callable[[m.ReflexFired
     return report
 
 
+def rehearse_class(node_cls: type[Node], name: str) -> None:
+    """The node class's `Node.rehearse`, before its constructor; a failure is a log line."""
+    hook = getattr(node_cls, "rehearse", None)
+    if hook is None:  # a class that is not a `Node` subclass
+        return
+    try:
+        hook()
+    except Exception as e:  # the node's own code: it starts anyway
+        print(f"[{name}] rehearse failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+    trace.mark("node:rehearsed", name)
+
+
 def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:
     """Whether the main loop running ``core`` must wake after ``request``: to see the stop
     flag, or to re-read ``rate_hz``."""
@@ -310,6 +322,7 @@ class NodeRuntime:
             # The data ports first: declared before the node's code runs (the core delivers
             # nothing until `on_start` has returned), so that a gated start has them ready.
             bind_ports(transport, self.spec.ports)
+            rehearse_class(self.node_cls, self.spec.name)  # a replacement: while the old stops
             if self.gate is not None and not self._pass_gate():
                 return 0
             core = self.make_core(transport)

@@ -693,7 +693,7 @@ def rehearse_recovery(params: QuadParams | None = None) -> None:
     run of a code path writes to pages it shares with its parent (reference counts, Python
     3.11's specialised bytecode) and so copies them: ~0.35 ms for `ProplossController.update`
     on an idle machine, 1.2-1.9 ms on the loaded one of the quadcopter, between learning of
-    the failure and its first command. A node rehearsing at start pays it there instead.
+    the failure and its first command. The node's `rehearse` pays it before it runs.
     """
     p = params or QuadParams()
     hover = math.sqrt(p.weight / (N_MOTORS * p.k_f))

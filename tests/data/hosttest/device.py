@@ -22,6 +22,14 @@ class Holder(Node):
         fcntl.flock(self.device, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: held
         self._note("holds the device")
 
+    @classmethod
+    def rehearse(cls) -> None:
+        """Notes ``rehearsal <pid>`` in the file ``$HOSTTEST_WITNESS`` (it has no spec yet)."""
+        path = os.environ.get("HOSTTEST_WITNESS")
+        if path:
+            with open(path, "a") as f:
+                f.write(f"{time.monotonic():.6f} rehearsal {os.getpid()}\n")
+
     def export_state(self) -> dict[str, str]:
         """Its state for a replacement (``export_fails``: it cannot give it)."""
         if self.ctx.param("export_fails", False):

@@ -927,3 +927,36 @@ def test_a_rehearsal_that_raises_is_a_log_line_and_the_node_starts(capsys):
 
     rehearse_class(Clumsy, "clumsy")  # does not raise
     assert capsys.readouterr().err == "[clumsy] rehearse failed: ValueError: no scratch device\n"
+
+
+def test_a_component_loaded_into_a_container_rehearses_before_its_constructor(
+    procs, bus, tmp_path
+):
+    """`Node.rehearse` runs in the container's process before the component is built."""
+    package = tmp_path / "pkg"
+    shutil.copytree(PACKAGE, package)
+    system = package / "system.yaml"
+    text = system.read_text()
+    old = "  - name: holder_b\n    host: h1\n"
+    assert text.count(old) == 1
+    system.write_text(text.replace(old, old + "    container: box\n"))
+    procs.spawn(
+        [sys.executable, "-m", "rra_agent.host.agent", "--package", str(package), "--host",
+         "h1", "--hub", "--log-dir", str(tmp_path / "n"), "--connect", bus.connect[0],
+         "--no-multicast", "--lease-ms", "500"],
+        env={"HOSTTEST_WITNESS": str(tmp_path / "witness")}, name="agent",
+    )  # fmt: skip
+    client = BusClient(bus, SYSTEM)
+    try:
+        watch = Watch(client.session)
+        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
+                   15, "the host agent's token")  # fmt: skip
+        running = start(client, watch, procs, holder_spec("holder_b", tmp_path, 0.0))
+        assert "forkserver" in cmdline(running.pid)  # the container's process
+        rehearsed = [t for t, _, pid in witnessed(tmp_path, rehearsals=True)
+                     if pid == str(running.pid)]  # fmt: skip
+        built = [t for t, name, what in witnessed(tmp_path) if (name, what) == ("holder_b",
+                 "constructed")]  # fmt: skip
+        assert len(rehearsed) == 1 and len(built) == 1 and rehearsed[0] < built[0]
+    finally:
+        client.close()

@@ -122,14 +122,13 @@ def hold_cpu_latency(us: int, device: str = CPU_LATENCY_DEVICE) -> str | None:
     this process ends (the request is the open file: the kernel drops it when its last
     descriptor closes, a kill -9 included; close-on-exec, so no process started from here
     keeps it). What was refused, one line; None once held."""
+    fd = -1
     try:
         fd = os.open(device, os.O_WRONLY | os.O_CLOEXEC)
-    except OSError as e:
-        return f"CPU latency {us} us refused ({device}: {e.strerror})"
-    try:
         os.write(fd, struct.pack("=i", us))
     except OSError as e:
-        os.close(fd)
+        if fd >= 0:
+            os.close(fd)
         return f"CPU latency {us} us refused ({device}: {e.strerror})"
     _held.append(fd)
     return None

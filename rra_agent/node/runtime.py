@@ -91,11 +91,8 @@ def reflex_reporter(session: zenoh.Session, key: str) -> Callable[[m.ReflexFired
 
 def rehearse_class(node_cls: type[Node], name: str) -> None:
     """The node class's `Node.rehearse`, before its constructor; a failure is a log line."""
-    hook = getattr(node_cls, "rehearse", None)
-    if hook is None:  # a class that is not a `Node` subclass
-        return
     try:
-        hook()
+        node_cls.rehearse()
     except Exception as e:  # the node's own code: it starts anyway
         print(f"[{name}] rehearse failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
     trace.mark("node:rehearsed", name)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -76,6 +77,28 @@ def relay_spec(name: str = "relay", **kw) -> m.NodeSpec:
     )
 
 
+def spawn_agent(
+    procs, bus, tmp_path: Path, package: Path = PACKAGE, env: dict[str, str] | None = None,
+    prefix: tuple[str, ...] = (),
+) -> tuple[subprocess.Popen, BusClient]:
+    """A host agent of host h1 for ``package`` (``prefix``: a command it runs under, e.g.
+    ``chrt``), and a client that has seen its token."""
+    proc = procs.spawn(
+        [*prefix, sys.executable, "-m", "rra_agent.host.agent", "--package", str(package),
+         "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
+         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500"],
+        env=env, name="agent",
+    )  # fmt: skip
+    client = BusClient(bus, SYSTEM)
+    try:
+        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
+                   15, "the host agent's token")  # fmt: skip
+    except BaseException:
+        client.close()
+        raise
+    return proc, client
+
+
 @pytest.fixture(params=["fork-server"])
 def agent(procs, bus, tmp_path, request):
     """A host agent of host h1; ``exec`` (indirect parametrisation): without the fork server,
@@ -83,19 +106,8 @@ def agent(procs, bus, tmp_path, request):
     env = {"HOSTTEST_WITNESS": str(tmp_path / "witness")}  # device.Holder's rehearsals
     if request.param == "exec":
         env["RRA_FORK_SERVER"] = "0"
-    proc = procs.python(
-        "rra_agent.host.agent",
-        "--package", str(PACKAGE), "--host", "h1", "--hub", "--log-dir", str(tmp_path / "nodes"),
-        "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500",
-        name="agent", env=env,
-    )  # fmt: skip
-    client = BusClient(bus, SYSTEM)
+    proc, client = spawn_agent(procs, bus, tmp_path, env=env)
     watch = Watch(client.session)
-    wait_until(
-        lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
-        15,
-        "the host agent's token",
-    )
     yield proc, client, watch
     client.close()
 
@@ -648,17 +660,9 @@ def test_a_real_time_agent_s_fork_server_is_real_time_and_its_nodes_are_not(proc
     ``scheduling`` is not real time because its host agent is."""
     from rra_agent.host.scheduling import observed
 
-    proc = procs.spawn(
-        ["chrt", "-f", "10", sys.executable, "-m", "rra_agent.host.agent",
-         "--package", str(PACKAGE), "--host", "h1", "--hub", "--log-dir", str(tmp_path / "n"),
-         "--connect", bus.connect[0], "--no-multicast", "--lease-ms", "500"],
-        name="agent",
-    )  # fmt: skip
-    client = BusClient(bus, SYSTEM)
+    proc, client = spawn_agent(procs, bus, tmp_path, prefix=("chrt", "-f", "10"))
     try:
         watch = Watch(client.session)
-        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
-                   15, "the host agent's token")  # fmt: skip
         relay = start(client, watch, procs)
         zygote = next(p for p in children(proc.pid) if "forkserver" in cmdline(p)
                       and os.readlink(f"/proc/{p}/fd/0").startswith("pipe:"))  # fmt: skip
@@ -890,16 +894,8 @@ def test_a_host_agent_holds_its_host_s_cpu_latency_while_it_runs(procs, bus, tmp
     shutil.copytree(PACKAGE, package)
     manifest = package / "rra.yaml"
     manifest.write_text(manifest.read_text() + "agents: {cpu_latency_us: 0}\n")
-    proc = procs.spawn(
-        [sys.executable, "-m", "rra_agent.host.agent", "--package", str(package), "--host",
-         "h1", "--hub", "--log-dir", str(tmp_path / "n"), "--connect", bus.connect[0],
-         "--no-multicast", "--lease-ms", "500"],
-        name="agent",
-    )  # fmt: skip
-    client = BusClient(bus, SYSTEM)
+    proc, client = spawn_agent(procs, bus, tmp_path, package)
     try:
-        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
-                   15, "the host agent's token")  # fmt: skip
         assert cpu_latency() == 0
         proc.send_signal(stop)
         assert proc.wait(15) == (0 if stop == signal.SIGINT else -signal.SIGKILL)
@@ -940,17 +936,11 @@ def test_a_component_loaded_into_a_container_rehearses_before_its_constructor(
     old = "  - name: holder_b\n    host: h1\n"
     assert text.count(old) == 1
     system.write_text(text.replace(old, old + "    container: box\n"))
-    procs.spawn(
-        [sys.executable, "-m", "rra_agent.host.agent", "--package", str(package), "--host",
-         "h1", "--hub", "--log-dir", str(tmp_path / "n"), "--connect", bus.connect[0],
-         "--no-multicast", "--lease-ms", "500"],
-        env={"HOSTTEST_WITNESS": str(tmp_path / "witness")}, name="agent",
-    )  # fmt: skip
-    client = BusClient(bus, SYSTEM)
+    _, client = spawn_agent(
+        procs, bus, tmp_path, package, env={"HOSTTEST_WITNESS": str(tmp_path / "witness")}
+    )
     try:
         watch = Watch(client.session)
-        wait_until(lambda: list(client.session.liveliness().get(K.host_alive("h1"), timeout=0.5)),
-                   15, "the host agent's token")  # fmt: skip
         running = start(client, watch, procs, holder_spec("holder_b", tmp_path, 0.0))
         assert "forkserver" in cmdline(running.pid)  # the container's process
         rehearsed = [t for t, _, pid in witnessed(tmp_path, rehearsals=True)

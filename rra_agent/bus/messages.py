@@ -838,6 +838,10 @@ class EngineState(Msg, tag="engine_state"):
     #: it, newest last (``rra reload --undo`` goes back to the last one).
     models: str = ""
     history: list[str] = []
+    #: Whether the leader has deployed the system. A leader that has just claimed answers
+    #: ``GetState`` before its first deployment: a replica that takes over from that state
+    #: deploys the system itself rather than continuing from it.
+    deployed: bool = True
 
 
 StateMessage = EngineState

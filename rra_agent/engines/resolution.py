@@ -212,6 +212,9 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         #: Nodes whose live configuration is known to match: name -> pid.
         self.verified: dict[str, int] = {}
         self.deployed = False
+        #: This leader continues a deployment made before (the state it took over or saved
+        #: says so): its first reconciliation adopts, it does not deploy.
+        self.continues = False
         self.mirror: m.EngineState | None = None
         self.latest: m.Selection | None = None
         #: The selection last acted on (each is acted on once; a retry clears it).
@@ -437,9 +440,9 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         self._event("takeover", f"{self.name} leads (epoch {fence.epoch})", None)
         self._log_unlogged()
         self.reflexes.take_over()
-        if self.mirror is not None:
+        if self.mirror is not None and self.mirror.deployed:
             self._adopt_mirror(self.mirror)
-        else:
+        else:  # no leader deployed before it (or none is mirrored): the saved state, if any
             self._restore()
         self._take_latest()
         self._reconcile_soon = True
@@ -463,6 +466,7 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
 
     def _adopt_mirror(self, state: m.EngineState) -> None:
         """Continue from the state the previous leader published."""
+        self.continues = True
         self.executor.running = {s.name: s for s in state.running}
         self.executor.standby = {s.name: s for s in state.standby}
         try:
@@ -994,7 +998,7 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             if first:
                 self._changed()
                 self._event(
-                    "adopt",
+                    self._kind(first),
                     f"adopted {len(observed.nodes)} running node(s), nothing to change",
                     None,
                     outcome="ok",
@@ -1013,10 +1017,12 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         self._settle(target, outcome, first)
         self.deployed = True
         self._changed()
-        kind = "deploy" if first and not observed.nodes else ("adopt" if first else "reconcile")
+        kind = self._kind(first)
         what = (
             f"{len(self.executor.running)} node(s) running, {len(self.executor.standby)} on standby"
         )
+        if first and observed.nodes:
+            what += f" ({len(observed.nodes)} found running)"
         failed = "; ".join(f"{', '.join(f.steps)}: {f.error}" for f in outcome.failures)
         self._event(
             kind,
@@ -1030,6 +1036,15 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             durations={"execute": outcome.seconds},
         )
         return outcome
+
+    def _kind(self, first: bool) -> str:
+        """A reconciliation's event: ``deploy`` for the run's first deployment, even over
+        nodes already running (a replica that claimed the lead at the same moment started
+        them, or an earlier run left them on another host); ``adopt`` for a leader that
+        continues a deployment made before it (the state it took over or saved says so)."""
+        if not first:
+            return "reconcile"
+        return "adopt" if self.continues else "deploy"
 
     def _unavailable_components_of(self, names: list[str]) -> set[str]:
         """Which of these components run an unavailable implementation in the model."""
@@ -1101,6 +1116,7 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             reflexes=self.reflexes.state(),
             models=self.dep.models,
             history=list(self.history),
+            deployed=self.deployed if self.leading or self.mirror is None else self.mirror.deployed,
         )
 
     def _changed(self) -> None:
@@ -1148,6 +1164,7 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         state = self._saved_state()
         if state is None:
             return
+        self.continues = state.deployed
         self.follow_models(state.models)  # the models of that state (a reload before)
         self.history = list(state.history)
         self.selection, self.cv = frozenset(state.selection), {**self.cv, **state.cv}

@@ -18,9 +18,11 @@ ROOT = Path(__file__).resolve().parents[1] / "rra_agent"
 
 #: Bottom first. A module's floor is that of the longest prefix listed.
 FLOORS: list[tuple[str, ...]] = [
-    ("rra_agent.errors", "rra_agent.trace", "rra_agent._compat", "rra_agent.text"),
+    ("rra_agent.errors", "rra_agent.trace", "rra_agent._compat", "rra_agent.text",
+     "rra_agent.files"),
     # the rmw_zenoh wire layer: a library of its own (it imports nothing of rra-agent but its
-    # errors), so that the models, their validation, the nodes and the engines may all use it
+    # errors and its file writing), so that the models, their validation, the nodes and the
+    # engines may all use it
     ("rra_agent.ros2",),
     ("rra_agent.models", "rra_agent.library"),
     ("rra_agent.dsl",),

@@ -21,7 +21,6 @@ its code is given, and an override inherited from the environment would win othe
 from __future__ import annotations
 
 import json
-import os
 import re
 import shlex
 from collections.abc import Mapping, Sequence
@@ -29,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rra_agent.files import write_atomic
 from rra_agent.ros2.errors import BadName, FieldError
 from rra_agent.ros2.names import check_domain, check_namespace, check_node_name, qualify
 
@@ -153,17 +153,7 @@ def session_config(
 def write_session_config(path: str | Path, config: Mapping[str, Any]) -> Path:
     """Write ``config`` to ``path`` (JSON, which is JSON5 too), readable by its owner only
     (mode 0600, also when the file was there before), replaced whole; the path written."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    try:
-        os.fchmod(fd, 0o600)
-        os.write(fd, (json.dumps(config, indent=2) + "\n").encode())
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    return path
+    return write_atomic(path, (json.dumps(config, indent=2) + "\n").encode(), 0o600)
 
 
 def _remap_name(name: str) -> str:

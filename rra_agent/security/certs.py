@@ -37,6 +37,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from rra_agent.errors import RraError
+from rra_agent.files import write_atomic
 
 #: Roles with a certificate per host, and the one role that is not tied to a host.
 HOST_ROLES = ("agent", "engine", "node")
@@ -119,21 +120,6 @@ def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
 
 def _cert_pem(cert: x509.Certificate) -> bytes:
     return cert.public_bytes(serialization.Encoding.PEM)
-
-
-def _write(path: Path, data: bytes, mode: int) -> None:
-    """Write ``data`` atomically with ``mode`` (a key is never readable by others, even
-    briefly)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.unlink(missing_ok=True)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
-    try:
-        os.fchmod(fd, mode)
-        os.write(fd, data)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
 
 
 def _read_cert(path: Path) -> x509.Certificate:
@@ -240,8 +226,8 @@ def load_or_make_ca(
     ca_dir.mkdir(parents=True, exist_ok=True)
     os.chmod(ca_dir, 0o700)
     ca = _make_ca(name, days, now)
-    _write(key_path, _key_pem(ca.key), 0o600)
-    _write(cert_path, ca.pem, 0o644)
+    write_atomic(key_path, _key_pem(ca.key), 0o600)
+    write_atomic(cert_path, ca.pem, 0o644)
     return ca, [
         Issued("wrote", key_path, "CA key: keep it with the operator, copy it nowhere"),
         Issued("wrote", cert_path, "the system CA"),
@@ -338,8 +324,8 @@ def _leaf(
         return [Issued("kept", cert_path, cn)]
     key = _new_key()
     cert = _make_leaf(ca, cn, sans, days, now, key)
-    _write(key_path, _key_pem(key), 0o600)
-    _write(cert_path, _cert_pem(cert), 0o644)
+    write_atomic(key_path, _key_pem(key), 0o600)
+    write_atomic(cert_path, _cert_pem(cert), 0o644)
     action = "wrote" if why == "missing" else "renewed"
     note = cn if why == "missing" else f"{cn}: {why}"
     return [Issued(action, key_path), Issued(action, cert_path, note)]
@@ -349,7 +335,7 @@ def _ca_copy(folder: Path, ca: Authority) -> list[Issued]:
     path = folder / "ca.pem"
     if path.exists() and path.read_bytes() == ca.pem:
         return []
-    _write(path, ca.pem, 0o644)
+    write_atomic(path, ca.pem, 0o644)
     return [Issued("wrote", path, "copy of the system CA")]
 
 

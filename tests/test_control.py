@@ -340,6 +340,38 @@ def test_nodes_fly_swap_by_standby_activation_and_recover() -> None:
     assert working_motors(q.telemetry()) >= 3
 
 
+def test_a_replacement_controller_aims_at_the_setpoint_it_was_handed() -> None:
+    """The standard controller's exported state carries its last setpoint: a Proploss
+    controller that imports it and gets an estimate before any setpoint (a replacement
+    started between two 100 Hz setpoints) commands toward that setpoint, as the standard
+    controller did, not toward where the vehicle is."""
+    target = {"time": 1.0, "position": [0.5, -0.5, ALT + 0.5], "velocity": [0.0, 0.0, 0.0],
+              "acceleration": [0.0, 0.0, 0.0], "yaw": 0.0}  # fmt: skip
+    std = NodeHarness(Controller, name="controller", ports=CTL_PORTS)
+    std.send("setpoint", target)
+    q = Quadcopter(position=(0.0, 0.0, ALT))
+    std.send("estimate", q.true_state())
+    exported = std.request(m.ExportState())
+    assert isinstance(exported, m.Ok) and exported.result["setpoint"] == target
+    handed = exported.result | {"failed_motor": 0}
+    pl = NodeHarness(ProplossController, name="proploss_controller", ports=CTL_PORTS,
+                     params={"failed_motor": -1}, state=handed)  # fmt: skip
+    pl.send("estimate", q.true_state())
+    aimed = pl.outputs("motor_cmd")[-1]["speeds"]
+    held = NodeHarness(ProplossController, name="held", ports=CTL_PORTS,
+                       params={"failed_motor": -1}, state={"failed_motor": 0})  # fmt: skip
+    held.send("estimate", q.true_state())
+    assert aimed != held.outputs("motor_cmd")[-1]["speeds"]  # not the hold of where it is
+    fresh = c.ProplossController()
+    fresh.import_state(handed)
+    assert aimed == [float(w) for w in fresh.update(q.true_state(), target)]
+    # a malformed setpoint in a state is ignored (the estimate's hold, as without one)
+    junk = NodeHarness(ProplossController, name="junk", ports=CTL_PORTS,
+                       state={"failed_motor": 0, "setpoint": {"position": "up"}})  # fmt: skip
+    junk.send("estimate", q.true_state())
+    assert junk.outputs("motor_cmd")[-1]["speeds"] == held.outputs("motor_cmd")[-1]["speeds"]
+
+
 def test_proploss_node_is_silent_until_it_knows_the_failed_motor() -> None:
     pl = NodeHarness(
         ProplossController,

@@ -337,6 +337,14 @@ class _ControllerNode(Node):
     def _message(self, speeds: list[float]) -> dict[str, Any]:
         return {"speeds": speeds, "controller": self.ctx.name}
 
+    def _take_setpoint(self, state: Any) -> None:
+        """The setpoint of the controller this one replaces (its exported state), until one
+        arrives: a replacement's first command aims where the vehicle was told to go, not
+        where it is (its first samples may come before any setpoint)."""
+        sp = state.get("setpoint") if isinstance(state, dict) else None
+        if self.setpoint is None and isinstance(sp, dict) and _is_position(sp.get("position")):
+            self.setpoint = sp
+
     # ---- what a controller provides ------------------------------------------------------
     def setup(self) -> None:
         raise NotImplementedError
@@ -347,6 +355,14 @@ class _ControllerNode(Node):
 
     def compute(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray | None:
         raise NotImplementedError
+
+
+def _is_position(v: Any) -> bool:
+    return (
+        isinstance(v, list)
+        and len(v) == 3
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+    )
 
 
 def _hold(est: dict[str, Any]) -> dict[str, Any]:
@@ -362,9 +378,10 @@ def _hold(est: dict[str, Any]) -> dict[str, Any]:
 class Controller(_ControllerNode):
     """The standard cascaded controller (`control.StandardController`) for four motors.
 
-    Parameters: ``max_tilt`` (rad). Exports ``{integral, failed_motor}``: the position
-    integrators (an acceleration bias, m/s^2) and the motor it saw fail in the telemetry
-    (it does nothing else with the telemetry: it is the Proploss controller's business).
+    Parameters: ``max_tilt`` (rad). Exports ``{integral, failed_motor, setpoint}``: the
+    position integrators (an acceleration bias, m/s^2), the motor it saw fail in the
+    telemetry (it does nothing else with the telemetry: it is the Proploss controller's
+    business) and the last setpoint (a replacement aims at it until its own comes).
     """
 
     def setup(self) -> None:
@@ -378,10 +395,13 @@ class Controller(_ControllerNode):
         return self.ctl.update(est, sp)
 
     def export_state(self) -> Any:
-        return self.ctl.export_state() | {"failed_motor": self.failed_motor}
+        return self.ctl.export_state() | {
+            "failed_motor": self.failed_motor, "setpoint": self.setpoint,
+        }
 
     def import_state(self, state: Any) -> None:
         self.ctl.import_state(state)
+        self._take_setpoint(state)
 
 
 class ProplossController(_ControllerNode):
@@ -390,7 +410,7 @@ class ProplossController(_ControllerNode):
     Parameters: ``failed_motor`` (0..3, or -1: find it from the telemetry). Finds the
     failed motor in ``telemetry`` (latched), computes a command on every estimate while in
     standby (the SDK drops the publish), publishes the latest one at once on activation.
-    Imports the standard controller's state (position integrators, failed motor).
+    Imports the standard controller's state (position integrators, failed motor, setpoint).
     """
 
     @classmethod
@@ -448,9 +468,10 @@ class ProplossController(_ControllerNode):
             self.ctx.log("activated without a known failed motor: no command yet")
 
     def export_state(self) -> Any:
-        return self.ctl.export_state()
+        return self.ctl.export_state() | {"setpoint": self.setpoint}
 
     def import_state(self, state: Any) -> None:
         self.ctl.import_state(state)
         if self.ctl.failed is not None:
             self.failed_motor = self.ctl.failed
+        self._take_setpoint(state)

@@ -925,6 +925,29 @@ def test_a_rehearsal_that_raises_is_a_log_line_and_the_node_starts(capsys):
     assert capsys.readouterr().err == "[clumsy] rehearse failed: ValueError: no scratch device\n"
 
 
+def test_a_spare_rehearses_its_host_s_node_classes_before_it_knows_its_node(
+    agent, procs, tmp_path
+):
+    """The fork server's spare runs the rehearsal of every node class of its host that has
+    one (device.Holder's) while it waits for a request: the node it becomes finds it done
+    (no second rehearsal in its process), off the start's path. (The fork server starts
+    with the first node; the spare after it is forked a moment later.)"""
+    _, client, watch = agent
+    first = start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.0))
+
+    def spare_rehearsed() -> int | None:
+        pids = [int(pid) for _, _, pid in witnessed(tmp_path, rehearsals=True)]
+        return next((pid for pid in pids if pid != first.pid), None)
+
+    spare = wait_until(spare_rehearsed, 15, "the next spare's rehearsal")
+    ok(client.host("h1", m.StopNode(node="holder_a")))
+    wait_until(lambda: watch.state("holder_a", "STOPPED"), 15, "holder_a STOPPED")
+    node = start(client, watch, procs, holder_spec("holder_b", tmp_path, 0.0))
+    assert node.pid == spare  # the spare became the node
+    rehearsals = [pid for _, _, pid in witnessed(tmp_path, rehearsals=True) if int(pid) == spare]
+    assert len(rehearsals) == 1, witnessed(tmp_path, rehearsals=True)
+
+
 def test_a_component_loaded_into_a_container_rehearses_before_its_constructor(
     procs, bus, tmp_path
 ):

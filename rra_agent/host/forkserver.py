@@ -189,12 +189,18 @@ class ForkServerError(OSError):
 
 
 # ---- the zygote side ------------------------------------------------------------------------
+#: The preloaded node classes that have a rehearsal (`Node.rehearse`): a spare runs them
+#: while it waits for its request (`_wait_for_request`).
+_REHEARSING: list[type] = []
+
+
 def _preload(names: Iterable[str]) -> None:
     """Import modules; for an implementation (``pkg.module.Class``), import it and call its
     `Node.warm_up`. An absolute folder among the names is a system package's folder: it is
     appended to the import path first (`rra_agent.package.imports`), so the package's own
     node classes are imported and warmed up here too, and every node forked inherits it."""
     from rra_agent.node.loading import load_node_class
+    from rra_agent.node.runtime import rehearses
     from rra_agent.package.imports import add_package_path
 
     names = list(names)
@@ -207,7 +213,10 @@ def _preload(names: Iterable[str]) -> None:
             try:
                 importlib.import_module(name)
             except ImportError:
-                load_node_class(name, folders).warm_up()
+                cls = load_node_class(name, folders)
+                cls.warm_up()
+                if rehearses(cls) and cls not in _REHEARSING:
+                    _REHEARSING.append(cls)
 
 
 def _warm_sdk() -> None:
@@ -507,6 +516,20 @@ def _detach(fds: list[int]) -> None:
     os.close(null)
 
 
+def _rehearse_classes(pipe: int) -> None:
+    """In a spare, until its request comes: the rehearsals of the host's node classes that
+    have one, so that the node it becomes finds its own done (`Node.rehearse`: the first
+    run of the code it needs at once, off a swap's critical path)."""
+    if not _REHEARSING:
+        return
+    from rra_agent.node.runtime import rehearse_ahead
+
+    for cls in _REHEARSING:
+        if select.select([pipe], [], [], 0)[0]:
+            return  # the request came: the node rehearses its own class if it must
+        rehearse_ahead(cls)
+
+
 def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> None:
     """In a spare: be adopted, open the session ahead (``preopen``), then wait for the
     request and become its node. Never returns; exits quietly when the zygote goes without
@@ -525,6 +548,7 @@ def _wait_for_request(pipe: int, host_pid: int, preopen: str | None = None) -> N
             if session is not None and not select.select([pipe], [], [], 0)[0]:
                 with contextlib.suppress(Exception):  # no request yet: time to rehearse
                     rehearse(session, str(os.getpid()), bus)
+        _rehearse_classes(pipe)
         data = b""
         while not data.endswith(b"\n"):
             chunk = os.read(pipe, 65536)

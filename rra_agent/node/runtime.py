@@ -89,13 +89,37 @@ def reflex_reporter(session: zenoh.Session, key: str) -> Callable[[m.ReflexFired
     return report
 
 
+#: Node classes whose rehearsal this process has run (a spare runs them while it waits).
+_rehearsed: set[type[Node]] = set()
+
+
 def rehearse_class(node_cls: type[Node], name: str) -> None:
-    """The node class's `Node.rehearse`, before its constructor; a failure is a log line."""
-    try:
-        node_cls.rehearse()
-    except Exception as e:  # the node's own code: it starts anyway
-        print(f"[{name}] rehearse failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+    """The node class's `Node.rehearse`, before its constructor, unless this process ran it
+    already (`rehearse_ahead`); a failure is a log line."""
+    if node_cls not in _rehearsed:
+        try:
+            node_cls.rehearse()
+        except Exception as e:  # the node's own code: it starts anyway
+            print(f"[{name}] rehearse failed: {type(e).__name__}: {e}", file=sys.stderr,
+                  flush=True)  # fmt: skip
+        _rehearsed.add(node_cls)
     trace.mark("node:rehearsed", name)
+
+
+def rehearses(node_cls: type[Node]) -> bool:
+    """Whether the class has a rehearsal of its own (`Node.rehearse` overridden)."""
+    return "rehearse" in {name for k in node_cls.__mro__[:-1] if k is not Node for name in vars(k)}
+
+
+def rehearse_ahead(node_cls: type[Node]) -> None:
+    """In a spare, before it knows its node: the class's rehearsal, so that a node of the
+    class it becomes starts with it done. Quiet: one that fails runs again, and says so, in
+    the node that needs it."""
+    if node_cls in _rehearsed:
+        return
+    with contextlib.suppress(Exception):
+        node_cls.rehearse()
+        _rehearsed.add(node_cls)
 
 
 def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:

@@ -1,5 +1,5 @@
 """Writing a file whole, with its mode from the first byte: the one way rra-agent writes a
-key, a certificate, a session configuration or a state handed over between nodes."""
+key, a certificate or a ROS 2 executable's session configuration."""
 
 from __future__ import annotations
 

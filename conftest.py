@@ -15,6 +15,7 @@ scenarios/``.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -38,6 +39,16 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="a hostile client (tools/hostile.py) on the bus of every system a test of tests/ "
         "starts (not of a scenario's run)",
     )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The tests stop the processes they start with SIGINT, as Ctrl-C does. A shell that
+    runs the suite in the background without job control (``pytest &`` in a script) starts
+    it with SIGINT ignored, and an ignored signal is inherited: every process a test starts
+    would ignore it too (``rra status --watch`` and ``rra events`` never stopped). The suite
+    takes Python's default back."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:

@@ -120,6 +120,12 @@ def position(text: str, token: str, nth: int = 1) -> tuple[int, int]:
     return line, col
 
 
+def ok(reply: m.Reply) -> object:
+    """The result of a request that must have succeeded."""
+    assert isinstance(reply, m.Ok), reply
+    return reply.result
+
+
 def pid_alive(pid: int) -> bool:
     """True if ``pid`` exists and is not a zombie."""
     try:

@@ -17,7 +17,7 @@ from pathlib import Path
 import msgspec
 import pytest
 import zenoh
-from conftest import RELAY, RELAY_KEYS
+from conftest import RELAY, RELAY_KEYS, ok
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
@@ -27,11 +27,6 @@ from rra_agent.engines.events import read_events
 from rra_agent.engines.executor import spec_for
 
 K = RELAY_KEYS
-
-
-def ok(reply: m.Reply) -> object:
-    assert isinstance(reply, m.Ok), reply
-    return reply.result
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from pathlib import Path
 import msgspec
 import pytest
 import zenoh
-from conftest import pid_alive
+from conftest import ok, pid_alive
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, wait_until
@@ -120,11 +120,6 @@ def start(client: BusClient, watch: Watch, procs, spec: m.NodeSpec | None = None
     running = wait_until(lambda: watch.state(spec.name, "RUNNING", n), 15, f"{spec.name} RUNNING")
     procs.watch(running.pid)
     return running
-
-
-def ok(reply: m.Reply) -> object:
-    assert isinstance(reply, m.Ok), reply
-    return reply.result
 
 
 @pytest.mark.parametrize("agent", ["fork-server", "exec"], indirect=True)

@@ -96,12 +96,10 @@ _rehearsed: set[type[Node]] = set()
 def rehearse_class(node_cls: type[Node], name: str) -> None:
     """The node class's `Node.rehearse`, before its constructor, unless this process ran it
     already (`rehearse_ahead`); a failure is a log line."""
-    if node_cls not in _rehearsed:
-        try:
-            node_cls.rehearse()
-        except Exception as e:  # the node's own code: it starts anyway
-            print(f"[{name}] rehearse failed: {type(e).__name__}: {e}", file=sys.stderr,
-                  flush=True)  # fmt: skip
+    error = rehearse_ahead(node_cls)
+    if error is not None:  # the node's own code: it starts anyway (and does not retry it)
+        print(f"[{name}] rehearse failed: {type(error).__name__}: {error}", file=sys.stderr,
+              flush=True)  # fmt: skip
         _rehearsed.add(node_cls)
     trace.mark("node:rehearsed", name)
 
@@ -111,15 +109,18 @@ def rehearses(node_cls: type[Node]) -> bool:
     return "rehearse" in {name for k in node_cls.__mro__[:-1] if k is not Node for name in vars(k)}
 
 
-def rehearse_ahead(node_cls: type[Node]) -> None:
-    """In a spare, before it knows its node: the class's rehearsal, so that a node of the
-    class it becomes starts with it done. Quiet: one that fails runs again, and says so, in
-    the node that needs it."""
+def rehearse_ahead(node_cls: type[Node]) -> Exception | None:
+    """The class's rehearsal, once per process (a spare runs it before it knows its node,
+    so that a node of that class starts with it done); what it raised, if anything (a
+    rehearsal that failed runs again in the node that needs it, which says so)."""
     if node_cls in _rehearsed:
-        return
-    with contextlib.suppress(Exception):
+        return None
+    try:
         node_cls.rehearse()
-        _rehearsed.add(node_cls)
+    except Exception as e:
+        return e
+    _rehearsed.add(node_cls)
+    return None
 
 
 def must_wake(core: NodeCore, request: m.NodeRequest | None) -> bool:

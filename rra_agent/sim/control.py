@@ -365,7 +365,7 @@ class StandardController:
         return {"integral": self.integral.tolist()}
 
     def import_state(self, state: dict[str, Any]) -> None:
-        if isinstance(state, dict) and _is_vec3(state.get("integral")):
+        if isinstance(state, dict) and is_vec3(state.get("integral")):
             self.integral = np.asarray(state["integral"], dtype=float)
 
 
@@ -375,7 +375,8 @@ def _dt(last: float | None, t: float) -> float:
     return t - last
 
 
-def _is_vec3(v: Any) -> bool:
+def is_vec3(v: Any) -> bool:
+    """A list or tuple of three finite numbers (a vector in a state or a sample)."""
     return (
         isinstance(v, list | tuple)
         and len(v) == 3
@@ -677,7 +678,7 @@ class ProplossController:
         failed motor."""
         if not isinstance(state, dict):
             return
-        if _is_vec3(state.get("integral")):
+        if is_vec3(state.get("integral")):
             self.integral = np.asarray(state["integral"], dtype=float)
             self.integral[:2] = 0.0  # our horizontal loop has no integrator
         k = state.get("failed_motor")

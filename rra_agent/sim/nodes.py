@@ -342,7 +342,7 @@ class _ControllerNode(Node):
         arrives: a replacement's first command aims where the vehicle was told to go, not
         where it is (its first samples may come before any setpoint)."""
         sp = state.get("setpoint") if isinstance(state, dict) else None
-        if self.setpoint is None and isinstance(sp, dict) and _is_position(sp.get("position")):
+        if self.setpoint is None and isinstance(sp, dict) and control.is_vec3(sp.get("position")):
             self.setpoint = sp
 
     # ---- what a controller provides ------------------------------------------------------
@@ -355,14 +355,6 @@ class _ControllerNode(Node):
 
     def compute(self, est: dict[str, Any], sp: dict[str, Any]) -> np.ndarray | None:
         raise NotImplementedError
-
-
-def _is_position(v: Any) -> bool:
-    return (
-        isinstance(v, list)
-        and len(v) == 3
-        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
-    )
 
 
 def _hold(est: dict[str, Any]) -> dict[str, Any]:

@@ -17,7 +17,7 @@ import zenoh
 from conftest import ok, pid_alive
 
 from rra_agent.bus import messages as m
-from rra_agent.bus.client import BusClient, wait_until
+from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.counters import MAX_PAYLOAD
 from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.bus.keys import Keys
@@ -844,6 +844,61 @@ def test_a_replacement_whose_old_node_cannot_export_leaves_it_running(agent, pro
         after = watch.states[n:]
     assert not [s for s in after if s.node in ("holder_a", "holder_b")], after
     assert pid_alive(first.pid)  # the same process runs on
+
+
+@pytest.mark.parametrize("agent", ["fork-server"], indirect=True)
+def test_a_gated_replacement_starts_as_the_old_process_ends_with_its_agent_frozen(
+    agent, procs, tmp_path
+):
+    """The gate is the kernel's, not a hop through the host agent: holder_b is gated behind
+    holder_a, which takes 5 s to stop. Their host agent is frozen (SIGSTOP: it can neither
+    reap holder_a nor signal anyone) and holder_a is killed: holder_b takes the device at
+    once, holder_a a zombie. Once the agent runs again it reaps holder_a, and holder_b is
+    RUNNING in the process that was gated."""
+    proc, client, watch = agent
+    a = start(client, watch, procs, holder_spec("holder_a", tmp_path, 5.0))
+    n = len(watch.states)
+    probe = client.session.declare_publisher(K.data("src_b"))
+    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
+    ok(client.host("h1", replace))
+    gated = wait_until(lambda: watch.state("holder_b", "STARTING", n), 10, "holder_b STARTING")
+    procs.watch(gated.pid)
+    # Prepared (its subscriber declared: it waits at its gate), then the agent (and the
+    # router it holds) frozen, then holder_a's end.
+    wait_until(lambda: probe.matching_status.matching, 10, "holder_b's subscriber")
+    os.kill(proc.pid, signal.SIGSTOP)
+    try:
+        killed = time.monotonic()
+        os.kill(a.pid, signal.SIGKILL)
+        wait_until(
+            lambda: ("holder_b", "holds the device") in [(n, w) for _, n, w in witnessed(tmp_path)],
+            10, "holder_b holding the device, its agent frozen",
+        )  # fmt: skip
+        assert _state(a.pid) == "Z"  # ended, not reaped
+    finally:
+        os.kill(proc.pid, signal.SIGCONT)
+    notes = witnessed(tmp_path)
+    built = [t for t, name, what in notes if name == "holder_b" and what == "constructed"]
+    assert len(built) == 1 and built[0] > killed
+
+    # The freeze may outlast the bus's 500 ms lease: ask the agent rather than watch its news.
+    def listed() -> dict | None:
+        try:
+            reply = client.host("h1", m.ListNodes(), timeout=1.0)
+        except NoReply:  # the client's session is back in a moment
+            return None
+        nodes = {n["node"]: n for n in reply.result} if isinstance(reply, m.Ok) else {}
+        b = nodes.get("holder_b")
+        a_reaped = nodes.get("holder_a", {}).get("state") == "STOPPED"
+        return b if b and b["state"] == "RUNNING" and a_reaped else None
+
+    assert wait_until(listed, 15, "holder_b RUNNING, holder_a reaped")["pid"] == gated.pid
+
+
+def _state(pid: int) -> str:
+    """The state letter of ``/proc/PID/stat`` (``Z``: ended, not reaped)."""
+    raw = Path(f"/proc/{pid}/stat").read_text()
+    return raw[raw.rindex(")") + 2]
 
 
 def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(

@@ -62,7 +62,7 @@ from rra_agent.core.election import Term, newer
 from rra_agent.deployment import Deployment
 from rra_agent.engines.models import deploy_bundle
 from rra_agent.errors import RraError
-from rra_agent.host import links, scheduling, unique
+from rra_agent.host import gate, links, scheduling, unique
 from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
@@ -176,6 +176,7 @@ class HostAgent:
         self.local.gate_for = lambda spec: any(
             s.name == spec.name and spawned for s, spawned in self._after.values()
         )
+        self.local.gate_after = self._gate_after
         self.log_dir = Path(log_dir)
 
     def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
@@ -692,6 +693,17 @@ class HostAgent:
             return mb.state in LIVE
         p = self.supervisor.procs.get(name)
         return p is not None and p.state in LIVE
+
+    def _gate_after(self, spec: m.NodeSpec) -> tuple[int, int] | None:
+        """The process whose end opens the gate of ``spec``, the replacement of a node
+        stopping: (pid, start time); None where that node is no process of its own (a
+        member of a container: `_release` opens the gate)."""
+        old = next((o for o, (s, _) in self._after.items() if s.name == spec.name), None)
+        p = self.supervisor.procs.get(old) if old is not None else None
+        if p is None or p.pid is None:
+            return None
+        started = gate.start_time(p.pid)  # not reaped yet: reaping is this loop's
+        return None if started is None else (p.pid, started)
 
     def _release(self, old: str) -> None:
         """``old`` is gone: its replacement's code may run (its gate opens), or the

@@ -35,10 +35,12 @@ the engines need.
 Protocol on the zygote's stdin/stdout, one JSON object per line:
 
 - host -> zygote: ``{"id": n, "spec": <NodeSpec>, "env": {...}, "log": "<path>",
-  "argv": [...] | null, "cwd": "<dir>" | null, "main": "<module>" | null, "gate": bool}``
+  "argv": [...] | null, "cwd": "<dir>" | null, "main": "<module>" | null, "gate": bool,
+  "after": [pid, start time] | null}``
   (``argv`` null: a Python node; ``main`` set: ``argv`` is ``python -m <module> ...``, run
   in the fork; ``gate``: a Python node that prepares, then waits for its gate to open before
-  any of its code runs, `rra_agent.host.gate`);
+  any of its code runs, `rra_agent.host.gate`: as the process ``after`` ends, or without
+  it when the host agent sends the gate's signal);
 - zygote -> host: ``{"id": n, "started": pid}`` (the pid of the spare it handed it to;
   for a ``main`` request the branch writes it, on the same pipe).
 
@@ -579,6 +581,8 @@ def _node(request: dict[str, Any]) -> None:
     try:
         trace.mark("node:request", request["spec"]["name"])
         gated = bool(request.get("gate"))
+        # The old process's end watched before anything else (`gate.Exit`).
+        after = gate.Exit(*request["after"]) if gated and request.get("after") else None
         if not gated:
             gate.unblock()
         signal.signal(signal.SIGINT, signal.SIG_DFL)
@@ -602,7 +606,7 @@ def _node(request: dict[str, Any]) -> None:
         else:
             from rra_agent.node.process import run_node
 
-            code = run_node(spec, gate=gate.wait if gated else None)
+            code = run_node(spec, gate=(after.wait if after else gate.wait) if gated else None)
     except SystemExit as e:  # sys.exit in the node's code: its status, as Python's own
         code = _status(e.code)
     except BaseException:  # the node must never fall back into the zygote's loop
@@ -752,11 +756,13 @@ class ForkServer:
         cwd: str | None = None,
         main: str | None = None,
         gate: bool = False,
+        after: tuple[int, int] | None = None,
         timeout: float = 5.0,
     ) -> int:
         """Start a node; its pid. ``main``: ``argv`` is ``python -m main ...``, run in the
         fork rather than ``exec``ed (the zygote must have imported ``main``). ``gate``: a
-        Python node that waits for `rra_agent.host.gate.open_gate` before its code runs. Raises
+        Python node that waits before its code runs until the process ``after`` (pid, start
+        time) has ended, or without ``after`` for `rra_agent.host.gate.open_gate`. Raises
         `ForkServerError` if the zygote is gone or does not answer within ``timeout`` (then
         it is killed: a new one starts next time)."""
         if self.dead:
@@ -771,6 +777,7 @@ class ForkServer:
             "cwd": cwd,
             "main": main,
             "gate": gate,
+            "after": after,
         }
         try:
             self._in.write(json.dumps(request).encode() + b"\n")

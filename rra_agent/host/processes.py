@@ -137,7 +137,10 @@ class LocalHost:
         #: Whether a node is to start gated (`rra_agent.host.gate`): the host agent says so
         #: for the replacement of a node still stopping.
         self.gate_for: Callable[[NodeSpec], bool] = lambda spec: False
-        #: Gated nodes whose gate is not open yet: pid -> node name.
+        #: The process a gated node waits for, (pid, start time): its gate opens as that
+        #: process ends (`gate.Exit`); None: when `open_gate` says so.
+        self.gate_after: Callable[[NodeSpec], tuple[int, int] | None] = lambda spec: None
+        #: Gated nodes whose gate `open_gate` is to open: pid -> node name.
         self.gated: dict[int, str] = {}
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -182,10 +185,11 @@ class LocalHost:
             cwd = spec.implementation.cwd if external else None  # type: ignore[union-attr]
             main = python_module(argv) if argv in self.forked else None
             gated = self.can_gate(spec) and self.gate_for(spec)
+            after = self.gate_after(spec) if gated else None
             pid = self._zygote().spawn(
-                spec, env, str(log_path), argv=argv, cwd=cwd, main=main, gate=gated
+                spec, env, str(log_path), argv=argv, cwd=cwd, main=main, gate=gated, after=after
             )
-            if gated:
+            if gated and after is None:
                 self.gated[pid] = spec.name
         else:
             pid = self._exec(spec, env, log_path)
@@ -205,10 +209,11 @@ class LocalHost:
         )
 
     def open_gate(self, name: str) -> None:
-        """Let the gated node ``name`` run its code (nothing if it is not waiting)."""
+        """The node ``name`` replaces is gone: let the gated node ``name`` run its code
+        (nothing if it is not waiting, or if it watches that node's end itself)."""
+        trace.mark("agent:gate", name)
         for pid in [p for p, n in self.gated.items() if n == name]:
             del self.gated[pid]
-            trace.mark("agent:gate", name)
             gate.open_gate(pid)
 
     def log_path(self, name: str) -> Path:

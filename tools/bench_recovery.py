@@ -19,8 +19,10 @@ the normal scheduler, no real-time budget to exhaust) and ``none`` (no schedulin
 core (``tools/cpuhog.py``) during all runs. Where the kernel refuses a scheduling, the runs
 say so and its rows are the same as the others. ``--layout co-located`` runs the simulator
 and the Proploss controller in one component container (beside the usual process per
-component with ``--layout processes``); ``--cpu-latency 0`` has the host agent keep the CPUs
-out of idle halts while the system runs (``agents: cpu_latency_us``, Linux PM QoS).
+component with ``--layout processes``). The host agent keeps the CPUs out of idle halts while
+the system runs as the package ships it (``agents: cpu_latency_us: 0`` in the quadcopter's
+rra.yaml, Linux PM QoS); ``--cpu-latency off`` runs without that, ``--cpu-latency US`` with
+another latency.
 
 Prints median and p99 per strategy beside the goals, for the first Proploss command received
 by the simulator (the switch done) and for the first physics step it drives (the simulator
@@ -33,7 +35,7 @@ simulator's first Proploss command received -> first physics step driven by it. 
 PNG of altitude over time around the failure (needs matplotlib: ``pip install -e '.[bench]'``).
 
     .venv/bin/python tools/bench_recovery.py [--runs 20] [--load] [--plot recovery.png]
-        [--layout processes --layout co-located] [--cpu-latency 0]
+        [--layout processes --layout co-located] [--cpu-latency off|US]
 """
 
 from __future__ import annotations
@@ -122,8 +124,7 @@ PHASES = {
         ("its host agent asks for the old node's state", "agent:export"),
         ("state exported", "agent:exported"),
         ("old node killed", "agent:STOPPING"),
-        ("its exit reaped (gate opened)", "agent:STOPPED"),
-        ("gate seen by the new node", "node:gate"),
+        ("its end seen by the new node (its gate)", "node:gate"),
         ("import_state, on_start, token", "node:token"),
         *_SIM,
     ],
@@ -134,6 +135,7 @@ MEANWHILE = {
     "hot-standby": _LOOP,
     "stop-then-start": [
         ("(meanwhile) the spare prepares: session, ports", "node:request", "node:prepared"),
+        ("(meanwhile) the old node's exit reaped by its agent", "agent:STOPPING", "agent:STOPPED"),
         ("(meanwhile) ready seen by the engine", "node:token", "engine:started"),
         ("(meanwhile) the consumers' rewire answered", "engine:control", "engine:replied"),
     ],
@@ -160,13 +162,13 @@ def scheduled(
     into: Path,
     scheduling: dict | None,
     layout: str = "processes",
-    cpu_latency: int | None = None,
+    cpu_latency: int | str | None = "shipped",
 ) -> Path:
     """A copy of ``package`` with its critical path (nodes, engines, agents) scheduled with
     ``scheduling``, and nothing else scheduled (``None``: no scheduling anywhere); with
     ``layout`` ``co-located``, the components of `COLOCATED` in one container; with
     ``cpu_latency``, the host agent holding the CPUs' wake-up latency (``agents:
-    cpu_latency_us``)."""
+    cpu_latency_us``; ``"shipped"``: as the package says, ``None``: not held)."""
     shutil.copytree(package, into)
     system = yaml.safe_load((into / "system.yaml").read_text())
     for c in system.get("components", []):
@@ -177,14 +179,35 @@ def scheduled(
             c["container"] = "flight"
     (into / "system.yaml").write_text(yaml.safe_dump(system, sort_keys=False))
     manifest = yaml.safe_load((into / "rra.yaml").read_text())
+    shipped = (manifest.get("agents") or {}).get("cpu_latency_us")
     for key in ("engines", "agents"):
         manifest.pop(key, None)
         if scheduling is not None:
             manifest[key] = {"scheduling": dict(scheduling)}
-    if cpu_latency is not None:
-        manifest.setdefault("agents", {})["cpu_latency_us"] = cpu_latency
+    held = shipped if cpu_latency == "shipped" else cpu_latency
+    if held is not None:
+        manifest.setdefault("agents", {})["cpu_latency_us"] = held
     (into / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     return into
+
+
+def _latency(value: str) -> int | str | None:
+    """``--cpu-latency``'s value: microseconds, ``off`` (not held) or ``shipped`` (as the
+    package says)."""
+    if value in ("off", "shipped"):
+        return None if value == "off" else value
+    if not value.isdigit():
+        raise argparse.ArgumentTypeError(f"{value!r}: microseconds, off or shipped")
+    return int(value)
+
+
+def _latency_said(value: int | str | None) -> str:
+    """How the benchmark's table heading names the CPU latency it ran with."""
+    if value == "shipped":
+        shipped = yaml.safe_load((SCENARIO.parent / "rra.yaml").read_text()).get("agents") or {}
+        value = shipped.get("cpu_latency_us")
+        return f"as shipped, {'not held' if value is None else f'held at {value} us'}"
+    return "not held" if value is None else f"held at {value} us"
 
 
 def phases(path: Path, strategy: str) -> dict[str, float]:
@@ -400,10 +423,12 @@ def main() -> int:
     )
     ap.add_argument(
         "--cpu-latency",
-        type=int,
-        metavar="US",
+        type=_latency,
+        default="shipped",
+        metavar="US|off",
         help="the host agent holds its CPUs' wake-up latency at US microseconds while the "
-        "system runs (agents: cpu_latency_us in rra.yaml; Linux PM QoS, root); default: not",
+        "system runs, or not at all with off (agents: cpu_latency_us in rra.yaml; Linux PM "
+        "QoS, root); default: as the package ships",
     )
     ap.add_argument(
         "--keep",
@@ -450,8 +475,7 @@ def main() -> int:
         "scheduling of the critical path: "
         + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in scheds)
     )
-    if args.cpu_latency is not None:
-        print(f"CPU wake-up latency held at {args.cpu_latency} us (agents: cpu_latency_us)")
+    print(f"CPU wake-up latency: {_latency_said(args.cpu_latency)} (agents: cpu_latency_us)")
     if "co-located" in layouts:
         print(f"co-located: {', '.join(COLOCATED)} in one component container")
     print_table(

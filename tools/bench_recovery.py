@@ -19,10 +19,10 @@ the normal scheduler, no real-time budget to exhaust) and ``none`` (no schedulin
 core (``tools/cpuhog.py``) during all runs. Where the kernel refuses a scheduling, the runs
 say so and its rows are the same as the others. ``--layout co-located`` runs the simulator
 and the Proploss controller in one component container (beside the usual process per
-component with ``--layout processes``). The host agent keeps the CPUs out of idle halts while
-the system runs as the package ships it (``agents: cpu_latency_us: 0`` in the quadcopter's
-rra.yaml, Linux PM QoS); ``--cpu-latency off`` runs without that, ``--cpu-latency US`` with
-another latency.
+component with ``--layout processes``). ``--cpu-latency 0`` has the host agent keep the CPUs
+out of idle halts while the system runs (``agents: cpu_latency_us``, Linux PM QoS);
+``--cpu-latency off`` runs without it whatever the package says (default: as it ships, not
+held for the quadcopter).
 
 Prints median and p99 per strategy beside the goals, for the first Proploss command received
 by the simulator (the switch done) and for the first physics step it drives (the simulator

@@ -895,6 +895,31 @@ def test_a_gated_replacement_starts_as_the_old_process_ends_with_its_agent_froze
     assert wait_until(listed, 15, "holder_b RUNNING, holder_a reaped")["pid"] == gated.pid
 
 
+@pytest.mark.parametrize("agent", ["fork-server"], indirect=True)
+def test_a_replacement_that_cannot_start_leaves_the_old_node_running(agent, procs, tmp_path):
+    """The replacement is spawned (gated) before the old node is told to stop: one that
+    cannot start (holder_b is still stopping from before: ``busy``) is an ``Err``, and
+    holder_a runs on, never stopping, in the same process."""
+    _, client, watch = agent
+    first_b = holder_spec("holder_b", tmp_path, 3.0)
+    (tmp_path / "device_b").touch()  # a device of its own: holder_a takes the other
+    first_b = msgspec.structs.replace(
+        first_b, params={**first_b.params, "device": str(tmp_path / "device_b")}
+    )
+    b = start(client, watch, procs, first_b)
+    ok(client.host("h1", m.StopNode(node="holder_b")))  # 3 s in its on_stop
+    wait_until(lambda: watch.state("holder_b", "STOPPING"), 10, "holder_b STOPPING")
+    a = start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.0))
+    n = len(watch.states)
+    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
+    reply = client.host("h1", replace)
+    assert isinstance(reply, m.Err) and reply.code == "busy", reply
+    listed = {x["node"]: (x["state"], x["pid"]) for x in ok(client.host("h1", m.ListNodes()))}
+    assert listed == {"holder_a": ("RUNNING", a.pid), "holder_b": ("STOPPING", b.pid)}
+    with watch.lock:
+        assert not [s for s in watch.states[n:] if s.node == "holder_a"], watch.states[n:]
+
+
 def _state(pid: int) -> str:
     """The state letter of ``/proc/PID/stat`` (``Z``: ended, not reaped)."""
     raw = Path(f"/proc/{pid}/stat").read_text()

@@ -629,13 +629,16 @@ class HostAgent:
         here until ``old`` is gone (`_release`)."""
         if self.stopping:
             return m.Err(message=f"host {self.host} is shutting down", code="busy")
+        gateable = spec.name != old and self.catalog.container_of(spec.name) is None
+        gated = gateable and self.local.can_gate(spec)
+        p = self.supervisor.procs.get(old)
+        if gated and p is not None and p.state in LIVE:
+            return self._prepare_then_stop(old, spec, deadline)
         stopped = self._stop(old, deadline)
         if isinstance(stopped, m.Err):
             return stopped
         if not self._live(old):
             return self._start(spec)
-        gateable = spec.name != old and self.catalog.container_of(spec.name) is None
-        gated = gateable and self.local.can_gate(spec)
         self._after[old] = (spec, gated)
         if not gated:
             return m.Ok(result={"state": State.STOPPED.value, "after": old})
@@ -693,6 +696,18 @@ class HostAgent:
             return mb.state in LIVE
         p = self.supervisor.procs.get(name)
         return p is not None and p.state in LIVE
+
+    def _prepare_then_stop(self, old: str, spec: m.NodeSpec, deadline: float | None) -> m.Reply:
+        """`_replace` of the process ``old``: its replacement spawned first, gated on the end
+        of that process (it prepares while ``old`` is told to stop), then ``old`` stopped. A
+        replacement that cannot start leaves ``old`` running."""
+        self._after[old] = (spec, True)
+        started = self._start(spec)  # gated: `self.local.gate_for` says so
+        if isinstance(started, m.Err):
+            self._after.pop(old, None)
+            return started
+        self._stop(old, deadline)
+        return started
 
     def _gate_after(self, spec: m.NodeSpec) -> tuple[int, int] | None:
         """The process whose end opens the gate of ``spec``, the replacement of a node

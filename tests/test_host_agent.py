@@ -846,6 +846,24 @@ def test_a_replacement_whose_old_node_cannot_export_leaves_it_running(agent, pro
     assert pid_alive(first.pid)  # the same process runs on
 
 
+def holder_b_at_its_gate(
+    client: BusClient, watch: Watch, procs, tmp_path: Path, stop_seconds: float
+) -> tuple[m.NodeState, m.NodeState, int]:
+    """holder_a running (its stop takes ``stop_seconds``), then replaced by holder_b, once
+    holder_b is prepared (its subscriber declared: it waits at its gate): holder_a's
+    RUNNING, holder_b's STARTING and where the states after the replacement begin."""
+    a = start(client, watch, procs, holder_spec("holder_a", tmp_path, stop_seconds))
+    n = len(watch.states)
+    probe = client.session.declare_publisher(K.data("src_b"))
+    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
+    ok(client.host("h1", replace))
+    gated = wait_until(lambda: watch.state("holder_b", "STARTING", n), 10, "holder_b STARTING")
+    procs.watch(gated.pid)
+    wait_until(lambda: probe.matching_status.matching, 10, "holder_b's subscriber")
+    probe.undeclare()
+    return a, gated, n
+
+
 @pytest.mark.parametrize("agent", ["fork-server"], indirect=True)
 def test_a_gated_replacement_starts_as_the_old_process_ends_with_its_agent_frozen(
     agent, procs, tmp_path
@@ -856,17 +874,8 @@ def test_a_gated_replacement_starts_as_the_old_process_ends_with_its_agent_froze
     once, holder_a a zombie. Once the agent runs again it reaps holder_a, and holder_b is
     RUNNING in the process that was gated."""
     proc, client, watch = agent
-    a = start(client, watch, procs, holder_spec("holder_a", tmp_path, 5.0))
-    n = len(watch.states)
-    probe = client.session.declare_publisher(K.data("src_b"))
-    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
-    ok(client.host("h1", replace))
-    gated = wait_until(lambda: watch.state("holder_b", "STARTING", n), 10, "holder_b STARTING")
-    procs.watch(gated.pid)
-    # Prepared (its subscriber declared: it waits at its gate), then the agent (and the
-    # router it holds) frozen, then holder_a's end.
-    wait_until(lambda: probe.matching_status.matching, 10, "holder_b's subscriber")
-    os.kill(proc.pid, signal.SIGSTOP)
+    a, gated, _ = holder_b_at_its_gate(client, watch, procs, tmp_path, 5.0)
+    os.kill(proc.pid, signal.SIGSTOP)  # the agent and the router it holds, then holder_a's end
     try:
         killed = time.monotonic()
         os.kill(a.pid, signal.SIGKILL)
@@ -933,14 +942,7 @@ def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code
     is declared): it ends cleanly (exit status 0: it left its gate and closed its session)
     and its constructor never ran; holder_a stops as asked."""
     _, client, watch = agent
-    start(client, watch, procs, holder_spec("holder_a", tmp_path, 2.0))
-    n = len(watch.states)
-    probe = client.session.declare_publisher(K.data("src_b"))
-    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
-    ok(client.host("h1", replace))
-    gated = wait_until(lambda: watch.state("holder_b", "STARTING", n), 10, "holder_b STARTING")
-    procs.watch(gated.pid)
-    wait_until(lambda: probe.matching_status.matching, 10, "holder_b's subscriber")
+    _, _, n = holder_b_at_its_gate(client, watch, procs, tmp_path, 2.0)
     ok(client.host("h1", m.StopNode(node="holder_b")))
     stopped = wait_until(lambda: watch.state("holder_b", "STOPPED", n), 10, "holder_b STOPPED")
     assert "exit status 0" in stopped.reason

@@ -625,8 +625,8 @@ class HostAgent:
 
     def _replace(self, old: str, spec: m.NodeSpec, deadline: float | None) -> m.Reply:
         """`ReplaceNode`: stop ``old`` and start ``spec`` once it is gone. A node the fork
-        server can start gated is spawned at once and prepares meanwhile; any other waits
-        here until ``old`` is gone (`_release`)."""
+        server can start gated is spawned first and prepares meanwhile
+        (`_prepare_then_stop`); any other waits here until ``old`` is gone (`_release`)."""
         if self.stopping:
             return m.Err(message=f"host {self.host} is shutting down", code="busy")
         gateable = spec.name != old and self.catalog.container_of(spec.name) is None
@@ -706,7 +706,7 @@ class HostAgent:
         if isinstance(started, m.Err):
             self._after.pop(old, None)
             return started
-        self._stop(old, deadline)
+        self._stop(old, deadline)  # a live process: always Ok
         return started
 
     def _gate_after(self, spec: m.NodeSpec) -> tuple[int, int] | None:

@@ -3,17 +3,17 @@
 A ``stop-then-start`` swap (`ReplaceNode`) must not run the replacement's code (constructor,
 ``import_state``, ``on_start``) before the old node is gone: the old one may hold what the
 new one takes (a device, a port, a file lock). The process itself need not wait: the host
-agent's fork server hands the request to a spare at once, marked *gated*, and the node opens
-its session and declares its data ports (nothing it publishes, nothing delivered to its
-code) while the old node is killed. Its code runs only once the old node's process has ended.
+agent's fork server hands the request to a spare, marked *gated*, before the old node is told
+to stop, and the node opens its session and declares its data ports (nothing it publishes,
+nothing delivered to its code) while the old node stops. Its code runs only once the old
+node's process has ended.
 
 The replacement learns that from the kernel itself where it can (`Exit`): it watches the old
 process through a pidfd, which becomes readable as that process ends, its files and devices
 released (it is then a zombie: its parent, the host agent, has not reaped it yet). No hop
-through the host agent: the agent's wake-up, its reaping and a signal back used to add 2-4
-ms to a swap on two cores. Where the old node is not a process of its own (a member of a
-component container), the host agent opens the gate when it is gone by sending `SIGNAL`
-(`wait`).
+through the host agent: a busy or stalled agent does not hold the swap. Where the old node
+is not a process of its own (a member of a component container), the host agent opens the
+gate when it is gone by sending `SIGNAL` (`wait`).
 
 `SIGNAL` is blocked in the fork server (`block`), so every process it forks starts with it
 blocked: a gate opened early stays pending instead of killing the process (SIGUSR1's default

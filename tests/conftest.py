@@ -22,6 +22,7 @@ from rra_agent.bus.client import BusClient, gather, set_params, wait_until
 from rra_agent.bus.config import free_port
 from rra_agent.bus.keys import Keys
 from rra_agent.engines.events import read_events
+from rra_agent.host import procfs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -128,11 +129,7 @@ def ok(reply: m.Reply) -> object:
 
 def pid_alive(pid: int) -> bool:
     """True if ``pid`` exists and is not a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (FileNotFoundError, ProcessLookupError, IndexError):
-        return False
+    return procfs.state(pid) not in ("", "Z")
 
 
 class Procs:

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import pytest
 
 from rra_agent.bus.client import wait_until
-from rra_agent.host import gate
+from rra_agent.host import gate, procfs
 
 pytestmark = pytest.mark.system  # it starts processes
 
@@ -38,7 +38,7 @@ def watch(request, monkeypatch):
 
 
 def test_the_gate_opens_as_the_process_ends_not_before(sleeper, watch) -> None:
-    started = gate.start_time(sleeper.pid)
+    started = procfs.start_time(sleeper.pid)
     assert started is not None
     ended = gate.Exit(sleeper.pid, started)
     assert (ended.fd is not None) == (watch == "pidfd")
@@ -51,16 +51,16 @@ def test_the_gate_opens_as_the_process_ends_not_before(sleeper, watch) -> None:
     assert ended.wait(stopping) is False
     ended = gate.Exit(sleeper.pid, started)
     sleeper.kill()
-    wait_until(lambda: gate._stat(sleeper.pid)[0] == b"Z", 5, "a zombie")  # type: ignore[index]
+    wait_until(lambda: procfs.state(sleeper.pid) == "Z", 5, "a zombie")
     assert ended.wait(lambda: False) is True  # ended, not reaped yet: its files are closed
     assert ended.fd is None  # closed once passed
 
 
 def test_a_pid_gone_or_taken_since_is_an_ended_process(sleeper, watch) -> None:
-    started = gate.start_time(sleeper.pid)
+    started = procfs.start_time(sleeper.pid)
     assert started is not None
     assert gate.Exit(sleeper.pid, started + 1).ended  # same pid, another process
     sleeper.kill()
     sleeper.wait()  # reaped: the pid is free
-    assert gate.start_time(sleeper.pid) is None
+    assert procfs.start_time(sleeper.pid) is None
     assert gate.Exit(sleeper.pid, started).wait(lambda: False) is True

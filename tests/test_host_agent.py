@@ -21,6 +21,7 @@ from rra_agent.bus.client import BusClient, NoReply, wait_until
 from rra_agent.bus.counters import MAX_PAYLOAD
 from rra_agent.bus.data import decode_data, encode_data
 from rra_agent.bus.keys import Keys
+from rra_agent.host.processes import process_state
 from rra_agent.models.system import Command, Scheduling, Supervision
 
 SYSTEM = "hosttest"
@@ -883,7 +884,7 @@ def test_a_gated_replacement_starts_as_the_old_process_ends_with_its_agent_froze
             lambda: ("holder_b", "holds the device") in [(n, w) for _, n, w in witnessed(tmp_path)],
             10, "holder_b holding the device, its agent frozen",
         )  # fmt: skip
-        assert _state(a.pid) == "Z"  # ended, not reaped
+        assert process_state(a.pid) == "Z"  # ended, not reaped
     finally:
         os.kill(proc.pid, signal.SIGCONT)
     notes = witnessed(tmp_path)
@@ -927,12 +928,6 @@ def test_a_replacement_that_cannot_start_leaves_the_old_node_running(agent, proc
     assert listed == {"holder_a": ("RUNNING", a.pid), "holder_b": ("STOPPING", b.pid)}
     with watch.lock:
         assert not [s for s in watch.states[n:] if s.node == "holder_a"], watch.states[n:]
-
-
-def _state(pid: int) -> str:
-    """The state letter of ``/proc/PID/stat`` (``Z``: ended, not reaped)."""
-    raw = Path(f"/proc/{pid}/stat").read_text()
-    return raw[raw.rindex(")") + 2]
 
 
 def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(

@@ -62,7 +62,7 @@ from rra_agent.core.election import Term, newer
 from rra_agent.deployment import Deployment
 from rra_agent.engines.models import deploy_bundle
 from rra_agent.errors import RraError
-from rra_agent.host import gate, links, scheduling, unique
+from rra_agent.host import gate, links, procfs, scheduling, unique
 from rra_agent.host.catalog import Catalog, Refused, check_name
 from rra_agent.host.members import Member, Members
 from rra_agent.host.processes import LocalHost, process_state
@@ -173,10 +173,7 @@ class HostAgent:
         #: `ReplaceNode`s under way: the node stopping -> its replacement, which starts
         #: once it is gone, and whether it was spawned already (gated) or waits here.
         self._after: dict[str, tuple[m.NodeSpec, bool]] = {}
-        self.local.gate_for = lambda spec: any(
-            s.name == spec.name and spawned for s, spawned in self._after.values()
-        )
-        self.local.gate_after = self._gate_after
+        self.local.gate_for = self._gate_for
         self.log_dir = Path(log_dir)
 
     def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
@@ -709,16 +706,18 @@ class HostAgent:
         self._stop(old, deadline)  # a live process: always Ok
         return started
 
-    def _gate_after(self, spec: m.NodeSpec) -> tuple[int, int] | None:
-        """The process whose end opens the gate of ``spec``, the replacement of a node
-        stopping: (pid, start time); None where that node is no process of its own (a
-        member of a container: `_release` opens the gate)."""
-        old = next((o for o, (s, _) in self._after.items() if s.name == spec.name), None)
-        p = self.supervisor.procs.get(old) if old is not None else None
-        if p is None or p.pid is None:
+    def _gate_for(self, spec: m.NodeSpec) -> gate.Gated | None:
+        """How ``spec`` starts gated, as the replacement of a node stopping (None: it is
+        not): on the end of that node's process, (pid, start time); where the node is no
+        process of its own (a container member), on this agent's signal (`_release`)."""
+        waiting = (o for o, (s, spawned) in self._after.items() if s.name == spec.name and spawned)
+        old = next(waiting, None)
+        if old is None:
             return None
-        started = gate.start_time(p.pid)  # not reaped yet: reaping is this loop's
-        return None if started is None else (p.pid, started)
+        p = self.supervisor.procs.get(old)
+        pid = p.pid if p is not None else None
+        started = procfs.start_time(pid) if pid is not None else None  # not reaped yet
+        return gate.Gated(None if pid is None or started is None else (pid, started))
 
     def _release(self, old: str) -> None:
         """``old`` is gone: its replacement's code may run (its gate opens), or the

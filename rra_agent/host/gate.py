@@ -28,6 +28,9 @@ import select
 import signal
 import time
 from collections.abc import Callable
+from typing import NamedTuple
+
+from rra_agent.host import procfs
 
 #: What the host agent sends to open a gate.
 SIGNAL = signal.SIGUSR1
@@ -65,22 +68,11 @@ def open_gate(pid: int) -> None:
         os.kill(pid, SIGNAL)
 
 
-def start_time(pid: int) -> int | None:
-    """When process ``pid`` started (clock ticks after boot, ``/proc/PID/stat``): with its
-    pid, the identity of a process (a pid is reused, the pair is not); None if it is gone."""
-    fields = _stat(pid)
-    return int(fields[19]) if fields else None
+class Gated(NamedTuple):
+    """How a gated replacement's gate opens: as the process ``after`` (pid, start time)
+    ends (`Exit`), or, without it, when the host agent sends `SIGNAL` (`wait`)."""
 
-
-def _stat(pid: int) -> list[bytes] | None:
-    """The fields of ``/proc/PID/stat`` after the command name (state first); None if the
-    process is gone."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            raw = f.read()
-    except OSError:
-        return None
-    return raw[raw.rindex(b")") + 2 :].split()
+    after: tuple[int, int] | None
 
 
 class Exit:
@@ -94,15 +86,9 @@ class Exit:
     def __init__(self, pid: int, started: int) -> None:
         self.pid, self.started = pid, started
         self.fd: int | None = None
-        self.ended = False
-        try:
+        with contextlib.suppress(OSError):  # gone (`_gone` says so) or refused: polled
             self.fd = os.pidfd_open(pid)
-        except ProcessLookupError:
-            self.ended = True
-        except OSError:  # polled instead (`_ended`)
-            self.fd = None
-        if not self.ended and start_time(pid) != started:  # reaped, its pid taken since
-            self.ended = True
+        self.ended = self._gone()
 
     def wait(self, stopping: Callable[[], bool]) -> bool:
         """`wait`'s contract: True once the process has ended, False if ``stopping()``
@@ -124,8 +110,13 @@ class Exit:
             return bool(select.select([self.fd], [], [], timeout)[0])
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            fields = _stat(self.pid)
-            if fields is None or fields[0] in (b"Z", b"X") or int(fields[19]) != self.started:
+            if self._gone():
                 return True
             time.sleep(_EXIT_POLL)
         return False
+
+    def _gone(self) -> bool:
+        """Whether the process has ended by what ``/proc`` says now: no such pid, a zombie,
+        or its pid taken by another process since."""
+        fields = procfs.stat(self.pid)
+        return fields is None or fields[0] in ("Z", "X") or int(fields[19]) != self.started

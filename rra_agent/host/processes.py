@@ -53,6 +53,7 @@ from rra_agent.host.forkserver import (
     die_with_parent,
     python_module,
 )
+from rra_agent.host.procfs import state as process_state
 from rra_agent.models.system import CONTAINER
 
 #: ``probe(name, pid, timeout)``: a direct probe of a node (answered through the supervisor).
@@ -97,15 +98,6 @@ def _status(raw: int) -> int:
     return -os.WTERMSIG(raw) if os.WIFSIGNALED(raw) else os.WEXITSTATUS(raw)
 
 
-def process_state(pid: int) -> str:
-    """The kernel's state letter of a process (``R``, ``S``, ``T`` stopped...), '' if gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return ""
-
-
 class LocalHost:
     """`ProcessHost` for this machine."""
 
@@ -134,12 +126,9 @@ class LocalHost:
         #: per-node identity): the fork server's spares open their sessions with it ahead
         #: (``RRA_SPARE_SESSION=0``: not).
         self.spare_bus: BusConfig | None = None
-        #: Whether a node is to start gated (`rra_agent.host.gate`): the host agent says so
-        #: for the replacement of a node still stopping.
-        self.gate_for: Callable[[NodeSpec], bool] = lambda spec: False
-        #: The process a gated node waits for, (pid, start time): its gate opens as that
-        #: process ends (`gate.Exit`); None: when `open_gate` says so.
-        self.gate_after: Callable[[NodeSpec], tuple[int, int] | None] = lambda spec: None
+        #: How a node is to start gated (`rra_agent.host.gate`), None if it is not: the host
+        #: agent says so for the replacement of a node still stopping.
+        self.gate_for: Callable[[NodeSpec], gate.Gated | None] = lambda spec: None
         #: Gated nodes whose gate `open_gate` is to open: pid -> node name.
         self.gated: dict[int, str] = {}
         self.log_dir = Path(log_dir)
@@ -184,12 +173,13 @@ class LocalHost:
             argv = node_command(spec) if external else None
             cwd = spec.implementation.cwd if external else None  # type: ignore[union-attr]
             main = python_module(argv) if argv in self.forked else None
-            gated = self.can_gate(spec) and self.gate_for(spec)
-            after = self.gate_after(spec) if gated else None
+            gated = self.gate_for(spec) if self.can_gate(spec) else None
+            after = gated.after if gated is not None else None
             pid = self._zygote().spawn(
-                spec, env, str(log_path), argv=argv, cwd=cwd, main=main, gate=gated, after=after
-            )
-            if gated and after is None:
+                spec, env, str(log_path), argv=argv, cwd=cwd, main=main,
+                gate=gated is not None, after=after,
+            )  # fmt: skip
+            if gated is not None and after is None:
                 self.gated[pid] = spec.name
         else:
             pid = self._exec(spec, env, log_path)

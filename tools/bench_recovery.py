@@ -162,13 +162,13 @@ def scheduled(
     into: Path,
     scheduling: dict | None,
     layout: str = "processes",
-    cpu_latency: int | str | None = "shipped",
+    cpu_latency: int | None = None,
 ) -> Path:
     """A copy of ``package`` with its critical path (nodes, engines, agents) scheduled with
     ``scheduling``, and nothing else scheduled (``None``: no scheduling anywhere); with
     ``layout`` ``co-located``, the components of `COLOCATED` in one container; with
     ``cpu_latency``, the host agent holding the CPUs' wake-up latency (``agents:
-    cpu_latency_us``; ``"shipped"``: as the package says, ``None``: not held)."""
+    cpu_latency_us``; None: not held)."""
     shutil.copytree(package, into)
     system = yaml.safe_load((into / "system.yaml").read_text())
     for c in system.get("components", []):
@@ -179,14 +179,12 @@ def scheduled(
             c["container"] = "flight"
     (into / "system.yaml").write_text(yaml.safe_dump(system, sort_keys=False))
     manifest = yaml.safe_load((into / "rra.yaml").read_text())
-    shipped = (manifest.get("agents") or {}).get("cpu_latency_us")
     for key in ("engines", "agents"):
         manifest.pop(key, None)
         if scheduling is not None:
             manifest[key] = {"scheduling": dict(scheduling)}
-    held = shipped if cpu_latency == "shipped" else cpu_latency
-    if held is not None:
-        manifest.setdefault("agents", {})["cpu_latency_us"] = held
+    if cpu_latency is not None:
+        manifest.setdefault("agents", {})["cpu_latency_us"] = cpu_latency
     (into / "rra.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     return into
 
@@ -201,13 +199,10 @@ def _latency(value: str) -> int | str | None:
     return int(value)
 
 
-def _latency_said(value: int | str | None) -> str:
-    """How the benchmark's table heading names the CPU latency it ran with."""
-    if value == "shipped":
-        shipped = yaml.safe_load((SCENARIO.parent / "rra.yaml").read_text()).get("agents") or {}
-        value = shipped.get("cpu_latency_us")
-        return f"as shipped, {'not held' if value is None else f'held at {value} us'}"
-    return "not held" if value is None else f"held at {value} us"
+def _shipped_latency() -> int | None:
+    """The CPU latency the package's host agents hold (``agents: cpu_latency_us``), if any."""
+    manifest = yaml.safe_load((SCENARIO.parent / "rra.yaml").read_text())
+    return (manifest.get("agents") or {}).get("cpu_latency_us")
 
 
 def phases(path: Path, strategy: str) -> dict[str, float]:
@@ -445,13 +440,15 @@ def main() -> int:
     layouts = args.layout or ["processes"]
     chosen = [_variant(v, lay) for v in scheds for lay in layouts]
     names = args.only or list(STRATEGIES)
+    shipped = args.cpu_latency == "shipped"
+    held = _shipped_latency() if shipped else args.cpu_latency
     accs = {(n, v): Acc(n, v) for n in names for v in chosen}
     try:
         with tempfile.TemporaryDirectory(prefix="rra-recovery-") as tmp:
             variants = {
                 _variant(v, lay): scheduled(
                     SCENARIO.parent, Path(tmp) / _variant(v, lay).replace(", ", "-"),
-                    VARIANTS[v], lay, args.cpu_latency,
+                    VARIANTS[v], lay, held,
                 )
                 for v in scheds
                 for lay in layouts
@@ -475,7 +472,8 @@ def main() -> int:
         "scheduling of the critical path: "
         + ", ".join(f"{v} = {VARIANTS[v] or 'none'}" for v in scheds)
     )
-    print(f"CPU wake-up latency: {_latency_said(args.cpu_latency)} (agents: cpu_latency_us)")
+    said = ("not held" if held is None else f"held at {held} us") + (", as shipped" * shipped)
+    print(f"CPU wake-up latency: {said} (agents: cpu_latency_us)")
     if "co-located" in layouts:
         print(f"co-located: {', '.join(COLOCATED)} in one component container")
     print_table(

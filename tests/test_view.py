@@ -241,6 +241,18 @@ def test_layout_of_the_example_packages():
     assert storing.text_measurements == ("SemLoc", "Material")
 
 
+@pytest.mark.parametrize("name", sorted(p.name for p in (ROOT / "scenarios").iterdir()))
+def test_every_shipped_package_has_a_layout(name):
+    # ros2_rover's components are commands (a Struct holding a list, so unhashable): its
+    # layout raised TypeError, and `rra up --rerun` with it crashed before anything started.
+    package = load_package(ROOT / "scenarios" / name)
+    layout = layout_of(package)
+    assert layout.system == package.system.system
+    assert {n for n, _ in layout.measurements} | set(layout.text_measurements) == {
+        m.name for m in package.measurements.measurements
+    }
+
+
 # ---- rra view ---------------------------------------------------------------------------------
 def touch(path: Path, mtime: float | None = None) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -100,9 +100,8 @@ def layout_of(package: SystemPackage) -> Layout:
         (m.name, m.unit or "") for m in package.measurements.measurements if m.type != "str"
     )
     text = tuple(m.name for m in package.measurements.measurements if m.type == "str")
-    impls = {c.implementation for c in package.system.components}
-    impls |= {i for c in package.system.components for i in c.implementations.values()}
-    names = {i if isinstance(i, str) else " ".join(i.command) for i in impls}
+    impls = [i for c in package.system.components for i in c.implementations_all]
+    names = {i if isinstance(i, str) else " ".join(i.command) for i in impls}  # a Command
     return Layout(
         system=package.system.system,
         measurements=numeric,

@@ -119,85 +119,12 @@ def _unit(name: str, unit: str) -> str:
 
 
 def build(layout: Layout) -> Any:
-    """The ``rerun.blueprint.Blueprint`` of ``layout``."""
-    import rerun as rr
+    """The ``rerun.blueprint.Blueprint`` of ``layout``: the vehicle or floor map above the
+    adaptation events on the left, the plots and state lanes on the right."""
     import rerun.blueprint as rrb
 
-    part = rr.escape_entity_path_part
-    whole = rrb.TimeAxis(  # the whole run, not a window around the time cursor
-        view_range=rr.TimeRange(
-            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
-        )
-    )
-
-    def plot(**kw: Any) -> Any:
-        return rrb.TimeSeriesView(axis_x=whole, **kw)
-
-    def ctx(name: str) -> str:
-        return f"/context/{part(name)}"
-
-    def choice(name: str) -> str:
-        return f"/choice/{part(name)}"
-
-    right: list[Any] = []
-    if layout.vehicle:
-        right.append(
-            plot(
-                name="Altitude against its target (m)",
-                origin="/vehicle",
-                contents=["/vehicle/altitude", "/vehicle/altitude_target", "/vehicle/injections"],
-            )
-        )
-        right.append(
-            rrb.Horizontal(
-                plot(name="Motor currents (A)", origin="/vehicle/motors/current"),
-                plot(name="Motor speeds (rad/s)", origin="/vehicle/motors/measured_speed"),
-            )
-        )
-    plots = [
-        plot(name=_unit(n, u), origin=ctx(n), contents=[ctx(n)]) for n, u in layout.measurements
-    ]
-    lanes: list[Any] = []
-    if layout.text_measurements or layout.choices or layout.vehicle:
-        groups = [group for group, _ in layout.choices]
-        title = "Selected " + ", ".join(groups)
-        if layout.text_measurements:
-            title = ", ".join(layout.text_measurements) + " and s" + title[1:]
-        if layout.vehicle:  # the faults the simulator was given (`Logger.injection`)
-            title = f"{title} and faults injected" if groups else "Faults injected"
-        lanes.append(
-            rrb.StateTimelineView(
-                name=title,
-                origin="/",
-                time_ranges=rrb.VisibleTimeRanges(  # every state of the run
-                    timeline=SIM,
-                    start=rrb.TimeRangeBoundary.infinite(),
-                    end=rrb.TimeRangeBoundary.infinite(),
-                ),
-                contents=[
-                    *(ctx(n) for n in layout.text_measurements),
-                    *(choice(group) for group in groups),
-                    *(["/injections"] if layout.vehicle else []),
-                ],
-            )
-        )
-    if layout.vehicle:  # few measurements: the working motors beside the controller
-        right.append(rrb.Horizontal(*plots, *lanes))
-    else:
-        if plots:
-            right.append(rrb.Horizontal(*plots))
-        right.extend(lanes)
-    for name, unit in layout.cv:
-        against = [lim for lim in layout.limits if lim[3] == name]
-        title = name + "".join(f" against {lim[0]}" for lim in against)
-        right.append(
-            plot(
-                name=_unit(title, unit),
-                origin="/cv",
-                contents=[f"/cv/{part(name)}", *(f"/cv/{part(lim[0])}" for lim in against)],
-            )
-        )
-    right.append(plot(name="Adaptation phases (ms)", origin="/timing"))
+    views = _Views(layout)
+    right = views.right()
     # Room for the state lanes (one per text measurement and choice, ~35 px each).
     shares = [3.0 if isinstance(v, rrb.StateTimelineView) else 2.0 for v in right]
     if layout.vehicle:
@@ -205,32 +132,124 @@ def build(layout: Layout) -> Any:
     # The phases' legend has six entries (decide, deliver, plan, switch, execute, total): at
     # a share of 2 of a 1000 px window it was cut after the fifth, hiding "total".
     shares[-1] = 3.0
-    events = rrb.TextLogView(
-        name="Adaptation events",
-        origin="/",
-        contents=["/events", "/rules"],
-        columns=rrb.TextLogColumns(timeline_columns=[SIM], text_log_columns=["loglevel", "body"]),
-        # DEBUG lines are adaptations that only changed CV values (plotted beside)
-        rows=rrb.TextLogRows(filter_by_log_level=["INFO", "WARN", "ERROR", "CRITICAL"]),
-    )
-    if layout.vehicle:
-        left: Any = rrb.Vertical(
-            rrb.Spatial3DView(name="Vehicle", origin="/world"), events, row_shares=[3, 2]
-        )
-    elif layout.floor_map:
-        left = rrb.Vertical(
-            rrb.Spatial2DView(name="Floor map (m)", origin="/map"), events, row_shares=[3, 2]
-        )
-    else:
-        left = events
     return rrb.Blueprint(
-        rrb.Horizontal(left, rrb.Vertical(*right, row_shares=shares), column_shares=[2, 3]),
+        rrb.Horizontal(views.left(), rrb.Vertical(*right, row_shares=shares), column_shares=[2, 3]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline=SIM),
         auto_layout=False,
         auto_views=False,
     )
+
+
+class _Views:
+    """The views of `build`, each made by one method (rerun imported by `build` first)."""
+
+    def __init__(self, layout: Layout) -> None:
+        import rerun as rr
+        import rerun.blueprint as rrb
+
+        self.layout, self.rr, self.rrb = layout, rr, rrb
+        self.whole = rrb.TimeAxis(  # the whole run, not a window around the time cursor
+            view_range=rr.TimeRange(
+                start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+            )
+        )
+
+    def part(self, name: str) -> str:
+        return str(self.rr.escape_entity_path_part(name))
+
+    def plot(self, **kw: Any) -> Any:
+        return self.rrb.TimeSeriesView(axis_x=self.whole, **kw)
+
+    def ctx(self, name: str) -> str:
+        return f"/context/{self.part(name)}"
+
+    def right(self) -> list[Any]:
+        """The right column, top to bottom: the vehicle's plots, the measurements and state
+        lanes, the CV values against their limits, the adaptation phases."""
+        layout, rrb = self.layout, self.rrb
+        right = self.vehicle() if layout.vehicle else []
+        plots = [
+            self.plot(name=_unit(n, u), origin=self.ctx(n), contents=[self.ctx(n)])
+            for n, u in layout.measurements
+        ]
+        lanes = self.lanes()
+        if layout.vehicle:  # few measurements: the working motors beside the controller
+            right.append(rrb.Horizontal(*plots, *lanes))
+        else:
+            if plots:
+                right.append(rrb.Horizontal(*plots))
+            right.extend(lanes)
+        right.extend(self.cv())
+        right.append(self.plot(name="Adaptation phases (ms)", origin="/timing"))
+        return right
+
+    def vehicle(self) -> list[Any]:
+        """The altitude against its target, the motors' currents and speeds."""
+        altitude = ["/vehicle/altitude", "/vehicle/altitude_target", "/vehicle/injections"]
+        return [
+            self.plot(name="Altitude against its target (m)", origin="/vehicle", contents=altitude),
+            self.rrb.Horizontal(
+                self.plot(name="Motor currents (A)", origin="/vehicle/motors/current"),
+                self.plot(name="Motor speeds (rad/s)", origin="/vehicle/motors/measured_speed"),
+            ),
+        ]
+
+    def lanes(self) -> list[Any]:
+        """One state timeline of the text measurements, the choices and the faults injected
+        (none if there is nothing of the kind)."""
+        layout, rrb = self.layout, self.rrb
+        if not (layout.text_measurements or layout.choices or layout.vehicle):
+            return []
+        groups = [group for group, _ in layout.choices]
+        title = "Selected " + ", ".join(groups)
+        if layout.text_measurements:
+            title = ", ".join(layout.text_measurements) + " and s" + title[1:]
+        if layout.vehicle:  # the faults the simulator was given (`Logger.injection`)
+            title = f"{title} and faults injected" if groups else "Faults injected"
+        contents = [
+            *(self.ctx(n) for n in layout.text_measurements),
+            *(f"/choice/{self.part(group)}" for group in groups),
+            *(["/injections"] if layout.vehicle else []),
+        ]
+        every = rrb.VisibleTimeRanges(  # every state of the run
+            timeline=SIM,
+            start=rrb.TimeRangeBoundary.infinite(),
+            end=rrb.TimeRangeBoundary.infinite(),
+        )
+        return [rrb.StateTimelineView(name=title, origin="/", time_ranges=every, contents=contents)]
+
+    def cv(self) -> list[Any]:
+        """A plot per context variable, against the limits set on it."""
+        out = []
+        for name, unit in self.layout.cv:
+            against = [lim for lim in self.layout.limits if lim[3] == name]
+            title = name + "".join(f" against {lim[0]}" for lim in against)
+            contents = [f"/cv/{self.part(name)}", *(f"/cv/{self.part(lim[0])}" for lim in against)]
+            out.append(self.plot(name=_unit(title, unit), origin="/cv", contents=contents))
+        return out
+
+    def left(self) -> Any:
+        """The adaptation events, under the vehicle or the floor map where there is one."""
+        rrb = self.rrb
+        events = rrb.TextLogView(
+            name="Adaptation events",
+            origin="/",
+            contents=["/events", "/rules"],
+            columns=rrb.TextLogColumns(
+                timeline_columns=[SIM], text_log_columns=["loglevel", "body"]
+            ),
+            # DEBUG lines are adaptations that only changed CV values (plotted beside)
+            rows=rrb.TextLogRows(filter_by_log_level=["INFO", "WARN", "ERROR", "CRITICAL"]),
+        )
+        if self.layout.vehicle:
+            scene = rrb.Spatial3DView(name="Vehicle", origin="/world")
+        elif self.layout.floor_map:
+            scene = rrb.Spatial2DView(name="Floor map (m)", origin="/map")
+        else:
+            return events
+        return rrb.Vertical(scene, events, row_shares=[3, 2])
 
 
 def describe(config: RerunConfig, layout: Layout) -> None:

@@ -78,7 +78,7 @@ from rra_agent.engines.events import EventSink, phase_durations
 from rra_agent.engines.executor import Ctl, Executor, Outcome, StepFailed, UnitFailure, spec_for
 from rra_agent.engines.leaders import LeaderWatch
 from rra_agent.engines.models import deploy_bundle
-from rra_agent.engines.reconcile import observe, takeover_plan
+from rra_agent.engines.reconcile import Observed, observe, takeover_plan
 from rra_agent.engines.reflexes import ReflexCompiler, ReflexKeeper, Situation
 from rra_agent.engines.reload import (
     changed_decls,
@@ -957,16 +957,47 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
         except RraError as e:
             self._event("reconcile", f"cannot resolve the model: {e}", None, level="error")
             return None
+        expected = {s.name: s for s in self._specs(target, target.components)}
+        standby_specs = self.standby_specs(target)
+        observed = self._observe(expected, standby_specs)
+        candidates = {s.name for s in standby_specs}
+        hot = {s.name for s in standby_specs if self.dep.package.runtime.replacement.hot(s.name)}
+        plan, running, standby = takeover_plan(observed, expected, target, candidates, hot)
+        missing = [
+            s
+            for s in standby_specs
+            if s.name not in standby and s.name not in observed.pending
+            and s.host not in observed.unreachable
+        ]  # fmt: skip
+        first = not self.deployed
+        self.executor.running, self.executor.standby = running, standby
+        if not plan.steps and not missing:
+            self._adopt(target, observed, expected, first)
+            return None
+        outcome = self.executor.execute(plan, skip=self._unavailable_components(target))
+        self._prestart_standbys(outcome, missing)
+        self.verified.update(observed.described)
+        self._failed_units(outcome, target)
+        self._settle(target, outcome, first)
+        self.deployed = True
+        self._changed()
+        self._reconciled(outcome, observed, first, reason)
+        return outcome
+
+    def _observe(
+        self, expected: dict[str, m.NodeSpec], standby_specs: list[m.NodeSpec]
+    ) -> Observed:
+        """What the reachable host agents run, each node described against its spec (the
+        desired one, its standby's, or the configured one); unreachable hosts marked."""
         known = {
             n: (pid, spec)
             for n, pid in self.verified.items()
             for spec in [self.executor.running.get(n) or self.executor.standby.get(n)]
             if spec is not None
         }
-        expected = {s.name: s for s in self._specs(target, target.components)}
-        standby_specs = self.standby_specs(target)
+        configured = self.dep.configured
         templates = {
-            **{s.name: s for s in self._specs(self.dep.configured, self.dep.configured.components)},
+            **{s.name: s for s in self._specs(configured, configured.components)},
             **{s.name: s for s in standby_specs},
             **expected,
         }
@@ -980,43 +1011,38 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             observed.forget(self._probing[0])
         self.unreachable = observed.unreachable
         self.observed.update(observed.states)
-        candidates = {s.name for s in standby_specs}
-        hot = {s.name for s in standby_specs if self.dep.package.runtime.replacement.hot(s.name)}
-        plan, running, standby = takeover_plan(observed, expected, target, candidates, hot)
-        missing = [
-            s
-            for s in standby_specs
-            if s.name not in standby and s.name not in observed.pending
-            and s.host not in observed.unreachable
-        ]  # fmt: skip
-        first = not self.deployed
-        self.executor.running, self.executor.standby = running, standby
-        if not plan.steps and not missing:
-            self.verified.update(observed.described)
-            self.runtime_model, self.deployed = target, True
-            self._update_hosts(expected, standby, observed)
-            if first:
-                self._changed()
-                self._event(
-                    self._kind(first),
-                    f"adopted {len(observed.nodes)} running node(s), nothing to change",
-                    None,
-                    outcome="ok",
-                )
-            return None
-        outcome = self.executor.execute(plan, skip=self._unavailable_components(target))
-        missing = [s for s in missing if not self._unavailable_components_of([s.name])]
-        if missing:
-            pre = self.executor.prestart_standby(missing)
-            outcome.records.extend(pre.records)
-            outcome.failures += pre.failures
-            outcome.ok = outcome.ok and pre.ok
-            outcome.error = outcome.error or pre.error
+        return observed
+
+    def _adopt(
+        self, target: SystemModel, observed: Observed, expected: dict[str, m.NodeSpec], first: bool
+    ) -> None:
+        """Nothing to change: what runs is ``target`` (the nodes found running adopted)."""
         self.verified.update(observed.described)
-        self._failed_units(outcome, target)
-        self._settle(target, outcome, first)
-        self.deployed = True
-        self._changed()
+        self.runtime_model, self.deployed = target, True
+        self._update_hosts(expected, self.executor.standby, observed)
+        if first:
+            self._changed()
+            self._event(
+                self._kind(first),
+                f"adopted {len(observed.nodes)} running node(s), nothing to change",
+                None,
+                outcome="ok",
+            )
+
+    def _prestart_standbys(self, outcome: Outcome, missing: list[m.NodeSpec]) -> None:
+        """Start the standbys that ``outcome`` left missing (their components available),
+        their records and failures added to it."""
+        missing = [s for s in missing if not self._unavailable_components_of([s.name])]
+        if not missing:
+            return
+        pre = self.executor.prestart_standby(missing)
+        outcome.records.extend(pre.records)
+        outcome.failures += pre.failures
+        outcome.ok = outcome.ok and pre.ok
+        outcome.error = outcome.error or pre.error
+
+    def _reconciled(self, outcome: Outcome, observed: Observed, first: bool, reason: str) -> None:
+        """The event of a reconciliation that changed something: what runs, what was done."""
         kind = self._kind(first)
         what = (
             f"{len(self.executor.running)} node(s) running, {len(self.executor.standby)} on standby"
@@ -1035,7 +1061,6 @@ class ResolutionEngineProcess(EngineProcess[Deployment]):
             plan=outcome,
             durations={"execute": outcome.seconds},
         )
-        return outcome
 
     def _kind(self, first: bool) -> str:
         """A reconciliation's event: ``deploy`` for the run's first deployment, even over

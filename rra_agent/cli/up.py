@@ -17,7 +17,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 import zenoh
@@ -39,6 +39,9 @@ from rra_agent.host.catalog import Catalog
 from rra_agent.host.forkserver import trim_heap
 from rra_agent.host.links import LinkWatch, banner, printer
 from rra_agent.models.system import Command, Supervision
+
+if TYPE_CHECKING:
+    from rra_agent.viz.rerun_log import RerunConfig
 
 ENGINES = ("monitor", "adaptation", "resolution")
 REPLICA_NAMES = "abcdefgh"
@@ -264,25 +267,8 @@ def _run(
         reflexes=not args.no_reflexes,
         record=record,
     )  # fmt: skip
-    catalog = Catalog(
-        dep.configured, args.host, package_root=dep.package.root, default_host=True,
-        ros2=dep.package.manifest.ros2,
-    )
-    catalog.add_builtins(specs)
     schedule_self(dep.package.manifest.agents, "rra up")
-    agent = HostAgent(
-        dep.system,
-        args.host,
-        bus,
-        run_dir / "logs",
-        hub=True,
-        catalog=catalog,
-        data_topics=topic_limits(dep.package.system),
-        engines=True,
-        models=dep,
-        **security(args, dep, args.host),
-    )
-    agent.observers.append(state_printer(quiet=args.quiet, wide=args.wide))
+    agent = _hub_agent(args, dep, bus, run_dir, specs)
     keep: list[Any] = []  # declared entities live as long as they are referenced
 
     def start_engines() -> None:
@@ -302,15 +288,53 @@ def _run(
         seal(run_dir)  # every engine has stopped: the record is whole
     if not args.quiet:
         print("rra up: all processes stopped", flush=True)
-    # -- Rerun logging (rra_agent.viz): merge the processes' files, once all have exited --
-    if rerun_out is not None:
-        try:
-            for warning in recording.finish(rerun_config, rerun_out):
-                print(f"rra up: rerun: {warning}", file=sys.stderr)
-        except recording.RecordingError as e:
-            print(f"rra up: rerun recording FAILED: {e}", file=sys.stderr)
-            print(f"rra up: the processes' files are in {rerun_config.dir}", file=sys.stderr)
-            return 1
-        if not args.quiet:
-            print(f"rra up: Rerun recording saved to {rerun_out}", flush=True)
+    if rerun_out is None:
+        return 0
+    return _merge_recording(rerun_config, rerun_out, quiet=args.quiet)
+
+
+def _hub_agent(
+    args: argparse.Namespace,
+    dep: Deployment,
+    bus: BusConfig,
+    run_dir: Path,
+    specs: list[m.NodeSpec],
+) -> HostAgent:
+    """The host agent of ``rra up``'s host: the hub (its router), which starts the engines
+    (``specs``) and prints the nodes' states as they change."""
+    catalog = Catalog(
+        dep.configured, args.host, package_root=dep.package.root, default_host=True,
+        ros2=dep.package.manifest.ros2,
+    )  # fmt: skip
+    catalog.add_builtins(specs)
+    agent = HostAgent(
+        dep.system,
+        args.host,
+        bus,
+        run_dir / "logs",
+        hub=True,
+        catalog=catalog,
+        data_topics=topic_limits(dep.package.system),
+        engines=True,
+        models=dep,
+        **security(args, dep, args.host),
+    )
+    agent.observers.append(state_printer(quiet=args.quiet, wide=args.wide))
+    return agent
+
+
+def _merge_recording(config: RerunConfig, out: Path, *, quiet: bool) -> int:
+    """Merge the processes' Rerun files into ``out``, once all have exited (rra_agent.viz);
+    the exit status: 1 if the recording could not be made."""
+    from rra_agent.viz import recording
+
+    try:
+        for warning in recording.finish(config, out):
+            print(f"rra up: rerun: {warning}", file=sys.stderr)
+    except recording.RecordingError as e:
+        print(f"rra up: rerun recording FAILED: {e}", file=sys.stderr)
+        print(f"rra up: the processes' files are in {config.dir}", file=sys.stderr)
+        return 1
+    if not quiet:
+        print(f"rra up: Rerun recording saved to {out}", flush=True)
     return 0

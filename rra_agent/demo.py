@@ -95,6 +95,28 @@ def recovery_report(rec, *, setpoint: float | None = None) -> RecoveryReport:
     if t_f is None:
         return out
     out.fault_stamp = t_f
+    _adaptation(out, rec, t_f)
+    switch = next(
+        (
+            e
+            for e in sim_events
+            if e.get("kind") == "controller"
+            and "proploss" in str(e.get("detail", ""))
+            and e["wall_time"] >= t_f
+        ),
+        None,
+    )
+    if switch is not None:
+        out.first_proploss_command = switch["wall_time"] - t_f
+    _flight(out, rec, t_f, setpoint)
+    crash = next((e for e in sim_events if e.get("kind") == "crash"), None)
+    out.crash = str(crash.get("detail", "crashed")) if crash else ""
+    out.airborne = crash is None and out.min_altitude is not None and out.min_altitude > 0.2
+    return out
+
+
+def _adaptation(out: RecoveryReport, rec, t_f: float) -> None:
+    """The engines' part after the fault at ``t_f``: detected, decided, planned, switched."""
     detect = next(
         (
             x
@@ -130,18 +152,11 @@ def recovery_report(rec, *, setpoint: float | None = None) -> RecoveryReport:
         out.plan = adaptation.durations.get("plan")
         out.switch = adaptation.durations.get("switch")
         out.execute = adaptation.durations.get("execute")
-    switch = next(
-        (
-            e
-            for e in sim_events
-            if e.get("kind") == "controller"
-            and "proploss" in str(e.get("detail", ""))
-            and e["wall_time"] >= t_f
-        ),
-        None,
-    )
-    if switch is not None:
-        out.first_proploss_command = switch["wall_time"] - t_f
+
+
+def _flight(out: RecoveryReport, rec, t_f: float, setpoint: float | None) -> None:
+    """The vehicle after the fault at ``t_f``: its lowest altitude and its deviations from
+    ``setpoint`` (by default the altitude it held before the fault)."""
     states = [d for d in _data(rec, f"{SIM}/state") if _xyz(d.value.get("position"))]
     before = [d.value["position"] for d in states if d.stamp < t_f]
     after = [(d.stamp - t_f, d.value["position"]) for d in states if d.stamp >= t_f]
@@ -150,10 +165,6 @@ def recovery_report(rec, *, setpoint: float | None = None) -> RecoveryReport:
         out.min_altitude = min(p[2] for _, p in after)
         if out.setpoint is not None:
             _deviations(out, out.setpoint, before[-1][:2] if before else None, after)
-    crash = next((e for e in sim_events if e.get("kind") == "crash"), None)
-    out.crash = str(crash.get("detail", "crashed")) if crash else ""
-    out.airborne = crash is None and out.min_altitude is not None and out.min_altitude > 0.2
-    return out
 
 
 def _xyz(p: object) -> bool:

@@ -287,11 +287,8 @@ def test_killed_host_agent_takes_its_nodes_along(agent, procs):
 def test_fork_server_death_is_reported_nodes_survive_and_ctrl_c_works(agent, procs):
     proc, client, watch = agent
     running = start(client, watch, procs)
-    # The nodes (and the spare node process waiting for a request) are forked from it too
-    # (same command line): the one whose stdin is still the host agent's pipe.
-    zygotes = [p for p in children(proc.pid) if "forkserver" in cmdline(p)
-               and os.readlink(f"/proc/{p}/fd/0").startswith("pipe:")]  # fmt: skip
-    assert len(zygotes) == 1 and running.pid not in zygotes
+    zygotes = [zygote_of(proc.pid)]
+    assert running.pid not in zygotes
     spares = [p for p in children(proc.pid) if "forkserver" in cmdline(p)
               and p not in zygotes and p != running.pid]  # fmt: skip
     os.kill(zygotes[0], signal.SIGKILL)
@@ -364,6 +361,16 @@ def cmdline(pid: int) -> str:
             return f.read().replace(b"\0", b" ").decode()
     except OSError:
         return ""
+
+
+def zygote_of(agent_pid: int) -> int:
+    """The fork server of the host agent ``agent_pid``. The nodes and the spare node
+    processes are forked from it too (same command line): it is the one whose stdin is
+    still the host agent's pipe."""
+    zygotes = [p for p in children(agent_pid) if "forkserver" in cmdline(p)
+               and os.readlink(f"/proc/{p}/fd/0").startswith("pipe:")]  # fmt: skip
+    assert len(zygotes) == 1, zygotes
+    return zygotes[0]
 
 
 TOOL = Command(
@@ -660,8 +667,7 @@ def test_a_real_time_agent_s_fork_server_is_real_time_and_its_nodes_are_not(proc
     try:
         watch = Watch(client.session)
         relay = start(client, watch, procs)
-        zygote = next(p for p in children(proc.pid) if "forkserver" in cmdline(p)
-                      and os.readlink(f"/proc/{p}/fd/0").startswith("pipe:"))  # fmt: skip
+        zygote = zygote_of(proc.pid)
         assert observed(zygote).policy == "fifo" and observed(zygote).priority == 10
         assert observed(relay.pid).policy == "other"
     finally:
@@ -928,6 +934,37 @@ def test_a_replacement_that_cannot_start_leaves_the_old_node_running(agent, proc
     assert listed == {"holder_a": ("RUNNING", a.pid), "holder_b": ("STOPPING", b.pid)}
     with watch.lock:
         assert not [s for s in watch.states[n:] if s.node == "holder_a"], watch.states[n:]
+
+
+@pytest.mark.parametrize("agent", ["fork-server"], indirect=True)
+def test_the_old_node_is_told_to_stop_before_the_fork_server_answers(agent, procs, tmp_path):
+    """The replacement's request is written to the fork server and holder_a is told to stop
+    at once: its stop does not wait for the fork server's answer (the spare's pid). With the
+    fork server frozen (SIGSTOP: it can read no request), holder_a still stops; once the
+    fork server runs again, holder_b starts in the spare it was handed, after holder_a."""
+    proc, client, watch = agent
+    start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.0))
+    n = len(watch.states)
+    zygote = zygote_of(proc.pid)
+    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
+    replied: list[m.Reply] = []
+    os.kill(zygote, signal.SIGSTOP)
+    try:  # the agent waits for the fork server's answer: ask from another thread
+        asking = threading.Thread(target=lambda: replied.append(client.host("h1", replace, 10)))
+        asking.start()
+        wait_until(
+            lambda: ("holder_a", "stopped") in [(nm, w) for _, nm, w in witnessed(tmp_path)],
+            4, "holder_a stopped, the fork server frozen",  # its answer's timeout is 5 s
+        )  # fmt: skip
+    finally:
+        os.kill(zygote, signal.SIGCONT)
+    asking.join(10)
+    assert replied and isinstance(replied[0], m.Ok), replied
+    running = wait_until(lambda: watch.state("holder_b", "RUNNING", n), 15, "holder_b RUNNING")
+    procs.watch(running.pid)
+    assert replied[0].result["pid"] == running.pid  # the spare handed the request
+    notes = [(name, what) for _, name, what in witnessed(tmp_path)]
+    assert notes.index(("holder_a", "stopped")) < notes.index(("holder_b", "constructed"))
 
 
 def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(

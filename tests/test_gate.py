@@ -7,7 +7,6 @@ from __future__ import annotations
 import errno
 import os
 import subprocess
-import sys
 from collections.abc import Iterator
 
 import pytest
@@ -65,33 +64,3 @@ def test_a_pid_gone_or_taken_since_is_an_ended_process(sleeper, watch) -> None:
     sleeper.wait()  # reaped: the pid is free
     assert procfs.start_time(sleeper.pid) is None
     assert gate.Exit(sleeper.pid, started).wait(lambda: False) is True
-
-
-def _may_raise_to_real_time() -> bool:
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-    except OSError:
-        return False
-    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    return True
-
-
-@pytest.mark.skipif(not _may_raise_to_real_time(), reason="no CAP_SYS_NICE or RLIMIT_RTPRIO")
-def test_a_killed_process_ends_above_the_normal_processes() -> None:
-    """`scheduling.hasten_exit` (what `LocalHost.signal` does after a SIGKILL): every thread
-    of the process, its Python threads too, is raised to SCHED_FIFO at the lowest priority,
-    so that its exit does not queue behind the busy normal processes; a pid gone is False."""
-    from rra_agent.host import scheduling
-
-    code = "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start()"
-    proc = subprocess.Popen([sys.executable, "-c", code + "; time.sleep(60)"])
-    try:
-        wait_until(lambda: len(os.listdir(f"/proc/{proc.pid}/task")) == 2, 10, "its two threads")
-        assert scheduling.hasten_exit(proc.pid)
-        for tid in os.listdir(f"/proc/{proc.pid}/task"):
-            assert os.sched_getscheduler(int(tid)) == os.SCHED_FIFO
-            assert os.sched_getparam(int(tid)).sched_priority == scheduling.EXIT_PRIORITY
-    finally:
-        proc.kill()
-        proc.wait()
-    assert not scheduling.hasten_exit(proc.pid)  # reaped: nothing to raise

@@ -216,13 +216,9 @@ class LocalHost:
         return self.log_dir / f"{name}.failure"
 
     def signal(self, pid: int, sig: int) -> None:
-        """Send ``sig`` to the node process ``pid``; a SIGKILL's process ends with the CPU
-        before normal processes (`scheduling.hasten_exit`)."""
         if pid in self.names:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, sig)
-                if sig == signal.SIGKILL:
-                    scheduling.hasten_exit(pid)
 
     def probe(self, name: str, pid: int, timeout: float) -> None:
         if self.prober is not None:

@@ -6,8 +6,7 @@ server's child, or the ``preexec_fn`` of an exec'd one), so every thread the nod
 starts (Zenoh's included) inherits it; `apply_to_process` also sets the threads already
 there (a spare's session opened ahead). `differences` is the host agent's check once the
 node is ready: what was asked for and not granted, one line each, for a warning event.
-`hold_cpu_latency` is a host agent's request for its host's CPU wake-up latency, and
-`hasten_exit` gives a killed process the CPU to end.
+`hold_cpu_latency` is a host agent's request for its host's CPU wake-up latency.
 """
 
 from __future__ import annotations
@@ -76,34 +75,11 @@ def apply_to_process(s: Scheduling) -> list[str]:
     return problems
 
 
-def _threads(pid: int | None = None) -> list[int]:
-    """The thread ids of ``pid`` (None: this process); none if it is gone."""
+def _threads() -> list[int]:
     try:
-        return [int(t) for t in os.listdir(f"/proc/{pid or 'self'}/task")]
+        return [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
         return []
-
-
-#: The real-time priority a killed process ends at (`hasten_exit`): the lowest, above every
-#: normal process, below any component's real-time threads.
-EXIT_PRIORITY = 1
-
-
-def hasten_exit(pid: int) -> bool:
-    """Put every thread of ``pid``, which has just been sent SIGKILL, above the normal
-    processes (SCHED_FIFO at `EXIT_PRIORITY`): none runs its own code again, only the
-    kernel's exit (the memory unmapped, the files and sockets closed), which then does not
-    wait for busy CPUs; what waits for that end (a replacement's gate) waits less. Whether
-    any thread was raised (False: the kernel refused, e.g. without CAP_SYS_NICE or
-    RLIMIT_RTPRIO, or the process is gone already)."""
-    raised = False
-    for tid in _threads(pid):
-        try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(EXIT_PRIORITY))
-        except OSError:
-            continue
-        raised = True
-    return raised
 
 
 def observed(pid: int) -> Scheduling:

@@ -936,37 +936,6 @@ def test_a_replacement_that_cannot_start_leaves_the_old_node_running(agent, proc
         assert not [s for s in watch.states[n:] if s.node == "holder_a"], watch.states[n:]
 
 
-@pytest.mark.parametrize("agent", ["fork-server"], indirect=True)
-def test_the_old_node_is_told_to_stop_before_the_fork_server_answers(agent, procs, tmp_path):
-    """The replacement's request is written to the fork server and holder_a is told to stop
-    at once: its stop does not wait for the fork server's answer (the spare's pid). With the
-    fork server frozen (SIGSTOP: it can read no request), holder_a still stops; once the
-    fork server runs again, holder_b starts in the spare it was handed, after holder_a."""
-    proc, client, watch = agent
-    start(client, watch, procs, holder_spec("holder_a", tmp_path, 0.0))
-    n = len(watch.states)
-    zygote = zygote_of(proc.pid)
-    replace = m.ReplaceNode(node="holder_a", spec=holder_spec("holder_b", tmp_path, 0.0))
-    replied: list[m.Reply] = []
-    os.kill(zygote, signal.SIGSTOP)
-    try:  # the agent waits for the fork server's answer: ask from another thread
-        asking = threading.Thread(target=lambda: replied.append(client.host("h1", replace, 10)))
-        asking.start()
-        wait_until(
-            lambda: ("holder_a", "stopped") in [(nm, w) for _, nm, w in witnessed(tmp_path)],
-            4, "holder_a stopped, the fork server frozen",  # its answer's timeout is 5 s
-        )  # fmt: skip
-    finally:
-        os.kill(zygote, signal.SIGCONT)
-    asking.join(10)
-    assert replied and isinstance(replied[0], m.Ok), replied
-    running = wait_until(lambda: watch.state("holder_b", "RUNNING", n), 15, "holder_b RUNNING")
-    procs.watch(running.pid)
-    assert replied[0].result["pid"] == running.pid  # the spare handed the request
-    notes = [(name, what) for _, name, what in witnessed(tmp_path)]
-    assert notes.index(("holder_a", "stopped")) < notes.index(("holder_b", "constructed"))
-
-
 def test_a_gated_replacement_stopped_before_its_gate_opens_runs_none_of_its_code(
     agent, procs, tmp_path
 ):

@@ -173,9 +173,6 @@ class HostAgent:
         #: `ReplaceNode`s under way: the node stopping -> its replacement, which starts
         #: once it is gone, and whether it was spawned already (gated) or waits here.
         self._after: dict[str, tuple[m.NodeSpec, bool]] = {}
-        #: What to do once the fork server has a gated replacement's request (by its name):
-        #: stop the node it replaces (`_prepare_then_stop`).
-        self._meanwhile: dict[str, Callable[[], None]] = {}
         self.local.gate_for = self._gate_for
         self.log_dir = Path(log_dir)
 
@@ -699,26 +696,14 @@ class HostAgent:
 
     def _prepare_then_stop(self, old: str, spec: m.NodeSpec, deadline: float | None) -> m.Reply:
         """`_replace` of the process ``old``: its replacement spawned first, gated on the end
-        of that process (it prepares while ``old`` stops), and ``old`` told to stop as soon
-        as the fork server has the request, without waiting for its answer. A replacement
-        that cannot start leaves ``old`` running."""
-        stopped: list[bool] = []
-
-        def stop_old() -> None:
-            stopped.append(True)
-            self._stop(old, deadline)  # a live process: always Ok
-
+        of that process (it prepares while ``old`` is told to stop), then ``old`` stopped. A
+        replacement that cannot start leaves ``old`` running."""
         self._after[old] = (spec, True)
-        self._meanwhile[spec.name] = stop_old
-        try:
-            started = self._start(spec)  # gated: `self.local.gate_for` says so
-        finally:
-            self._meanwhile.pop(spec.name, None)
-        if isinstance(started, m.Err):  # refused before anything was spawned
+        started = self._start(spec)  # gated: `self.local.gate_for` says so
+        if isinstance(started, m.Err):
             self._after.pop(old, None)
             return started
-        if not stopped:  # the request never reached the fork server (its start failed)
-            stop_old()
+        self._stop(old, deadline)  # a live process: always Ok
         return started
 
     def _gate_for(self, spec: m.NodeSpec) -> gate.Gated | None:
@@ -732,8 +717,7 @@ class HostAgent:
         p = self.supervisor.procs.get(old)
         pid = p.pid if p is not None else None
         started = procfs.start_time(pid) if pid is not None else None  # not reaped yet
-        after = None if pid is None or started is None else (pid, started)
-        return gate.Gated(after, self._meanwhile.pop(spec.name, None))
+        return gate.Gated(None if pid is None or started is None else (pid, started))
 
     def _release(self, old: str) -> None:
         """``old`` is gone: its replacement's code may run (its gate opens), or the

@@ -69,7 +69,7 @@ import subprocess
 import sys
 import time
 import traceback
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import msgspec
@@ -757,16 +757,14 @@ class ForkServer:
         main: str | None = None,
         gate: bool = False,
         after: tuple[int, int] | None = None,
-        sent: Callable[[], None] | None = None,
         timeout: float = 5.0,
     ) -> int:
         """Start a node; its pid. ``main``: ``argv`` is ``python -m main ...``, run in the
         fork rather than ``exec``ed (the zygote must have imported ``main``). ``gate``: a
         Python node that waits before its code runs until the process ``after`` (pid, start
-        time) has ended, or without ``after`` for `rra_agent.host.gate.open_gate`. ``sent``
-        is called once the request is written, before the answer is awaited (it must not
-        raise). Raises `ForkServerError` if the zygote is gone or does not answer within
-        ``timeout`` (then it is killed: a new one starts next time)."""
+        time) has ended, or without ``after`` for `rra_agent.host.gate.open_gate`. Raises
+        `ForkServerError` if the zygote is gone or does not answer within ``timeout`` (then
+        it is killed: a new one starts next time)."""
         if self.dead:
             raise ForkServerError("the fork server exited")
         self._next_id += 1
@@ -787,8 +785,6 @@ class ForkServer:
         except (BrokenPipeError, ValueError) as e:
             self.dead = True
             raise ForkServerError(f"the fork server exited ({e})") from None
-        if sent is not None:
-            sent()
         deadline = time.monotonic() + timeout
         while True:
             for msg in self._read(deadline):

@@ -70,12 +70,9 @@ def open_gate(pid: int) -> None:
 
 class Gated(NamedTuple):
     """How a gated replacement's gate opens: as the process ``after`` (pid, start time)
-    ends (`Exit`), or, without it, when the host agent sends `SIGNAL` (`wait`).
-    ``meanwhile``: what the host does once the fork server has the request, before its
-    answer (the old node told to stop: its end need not wait for that round trip)."""
+    ends (`Exit`), or, without it, when the host agent sends `SIGNAL` (`wait`)."""
 
     after: tuple[int, int] | None
-    meanwhile: Callable[[], None] | None = None
 
 
 class Exit:

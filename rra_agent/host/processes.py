@@ -178,7 +178,6 @@ class LocalHost:
             pid = self._zygote().spawn(
                 spec, env, str(log_path), argv=argv, cwd=cwd, main=main,
                 gate=gated is not None, after=after,
-                sent=gated.meanwhile if gated is not None else None,
             )  # fmt: skip
             if gated is not None and after is None:
                 self.gated[pid] = spec.name

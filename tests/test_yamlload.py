@@ -47,6 +47,23 @@ def test_a_valid_file_loads_and_keeps_its_tree() -> None:
     assert doc.key_loc("components", 0, "implementation") == at(text, "implementation")
 
 
+@pytest.mark.parametrize("written, value", [("1e-3", 0.001), ("2.5E3", 2500.0), ("-4e+1", -40.0)])
+def test_an_exponent_without_a_dot_or_sign_is_a_float(written: str, value: float) -> None:
+    """YAML 1.2 and JSON read ``1e-3`` as a float; PyYAML (YAML 1.1) read it as the string
+    '1e-3', and a float parameter written so was refused ("is not of type float")."""
+    text = COMP + f"    parameters:\n      gain: {{type: float, value: {written}}}\n"
+    model, _ = load_yaml_text(text, F, SystemModel)
+    assert model.components[0].parameters["gain"].value == value
+
+
+def test_the_command_line_reads_its_scalars_as_the_models_do() -> None:
+    from rra_agent.cli.param import parse_assignments
+
+    got = parse_assignments(["kp=1e-3", "n=10", "name=1e", "on=true"])
+    assert got == {"kp": 0.001, "n": 10, "name": "1e", "on": True}
+    assert isinstance(got["kp"], float)
+
+
 def test_wrong_type_points_at_the_value() -> None:
     text = (
         COMP

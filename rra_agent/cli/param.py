@@ -33,7 +33,10 @@ def configure_param(p: argparse.ArgumentParser) -> None:
 
 
 def parse_assignments(items: list[str]) -> dict[str, Any]:
+    """``NAME=VALUE`` items, each value a YAML scalar (``1e-3`` a float)."""
     import yaml
+
+    from rra_agent.package.yamlload import scalar
 
     out: dict[str, Any] = {}
     for item in items:
@@ -41,7 +44,7 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
         if not sep or not name:
             raise RraError(f"expected NAME=VALUE, got {item!r}")
         try:
-            out[name] = yaml.safe_load(text)
+            out[name] = scalar(text)
         except yaml.YAMLError as e:
             raise RraError(f"{item!r}: not a YAML value: {e}") from None
     return out

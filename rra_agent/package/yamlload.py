@@ -205,9 +205,31 @@ def _dup_message(node: MappingNode, key: Node) -> str:
 
 
 # ---- loading ------------------------------------------------------------------------------------
+#: The floats of YAML 1.2 (and JSON) that PyYAML, a YAML 1.1 reader, takes for strings: an
+#: exponent without a decimal point (``1e-3``) or without a sign (``2.5e3``). A gain written
+#: ``1e-3`` is the number it looks like, in the models as on the command line.
+_FLOAT_12 = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+
+
+def _yaml12_floats(base: type[yaml.SafeLoader]) -> type[yaml.SafeLoader]:
+    """``base`` resolving `_FLOAT_12` as floats too (PyYAML's resolvers come first)."""
+    loader: type[yaml.SafeLoader] = type(base.__name__, (base,), {})
+    loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123456789."))
+    return loader
+
+
+#: The pure-Python loader, with YAML 1.2's floats.
+SafeLoader = _yaml12_floats(yaml.SafeLoader)
 #: libyaml's composer when PyYAML has it: nine times faster on the shipped packages (a replay
 #: loads the run's models: tools/bench_replay.py), the same nodes, lines and columns.
-_FAST: type[yaml.SafeLoader] | None = getattr(yaml, "CSafeLoader", None)
+_C: type[yaml.SafeLoader] | None = getattr(yaml, "CSafeLoader", None)
+_FAST: type[yaml.SafeLoader] | None = _yaml12_floats(_C) if _C is not None else None
+
+
+def scalar(text: str) -> Any:
+    """The value of one YAML scalar as a command line gives it (``NAME=VALUE``): ``1e-3``
+    a float as in the model files; raises `yaml.YAMLError` if it is not YAML."""
+    return yaml.load(text, Loader=_FAST or SafeLoader)  # a safe loader's subclass
 
 
 def _compose(text: str) -> yaml.Node | None:
@@ -221,7 +243,7 @@ def _compose(text: str) -> yaml.Node | None:
         else:
             _plain_style(root)
             return root
-    return yaml.compose(text, Loader=yaml.SafeLoader)
+    return yaml.compose(text, Loader=SafeLoader)
 
 
 def _plain_style(node: yaml.Node | None) -> None:

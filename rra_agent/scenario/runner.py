@@ -57,6 +57,7 @@ from rra_agent.bus.session import NoPeer
 from rra_agent.engines.events import read_events
 from rra_agent.errors import RraError
 from rra_agent.host.processes import die_with_parent
+from rra_agent.package.yamlload import SafeLoader
 from rra_agent.scenario import expectations as x
 from rra_agent.scenario.link import Link
 from rra_agent.scenario.model import ENGINES, ScenarioCase, TimedStep
@@ -208,7 +209,7 @@ def prepare_package(case: ScenarioCase, run_dir: Path) -> Path:
         case.package, dst, ignore=shutil.ignore_patterns("*.scenario.yaml", "__pycache__")
     )
     runtime = dst / case.runtime_file
-    data = yaml.safe_load(runtime.read_text(encoding="utf-8")) if runtime.exists() else None
+    data = yaml.load(runtime.read_text(encoding="utf-8"), SafeLoader) if runtime.exists() else None
     data = data or {}
     data["replacement"] = msgspec.to_builtins(case.replacement)
     runtime.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")

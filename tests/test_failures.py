@@ -432,7 +432,8 @@ def test_leaders_killed_and_frozen_in_a_loop_never_act_together(system):
         if isinstance(e, m.AdaptationEvent) and e.kind == "adaptation" and e.outcome == "ok"
         and e.plan and e.stamp >= started
     ]  # fmt: skip
-    assert len(plans) == ROUNDS  # one swap per change of level: none lost, none doubled
+    told = [(round(e.stamp - started, 3), e.fence, e.selection, e.message, e.plan) for e in plans]
+    assert len(plans) == ROUNDS, told  # one swap per change of level: none lost, none doubled
     seqs = [e.selection for e in plans]
     assert len(set(seqs)) == len(seqs)
     epochs = [e.fence.epoch for e in sorted(plans, key=lambda e: e.stamp)]  # type: ignore[union-attr]

@@ -143,7 +143,7 @@ def build(layout: Layout) -> Any:
 
 
 class _Views:
-    """The views of `build`, each made by one method (rerun imported by `build` first)."""
+    """The views of `build`, one method each (rerun imported here, not with this module)."""
 
     def __init__(self, layout: Layout) -> None:
         import rerun as rr

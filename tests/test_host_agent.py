@@ -435,7 +435,10 @@ def test_a_declared_command_runs_as_declared_and_is_not_disclosed(agent, procs):
             if b"time.sleep(60)" not in f.read():
                 return None
         with open(f"/proc/{pid}/environ", "rb") as f:
-            return f.read().split(b"\0")
+            environ = f.read()
+        # The kernel writes a new program's arguments, then its environment: in between,
+        # /proc shows the new command line and an empty environment.
+        return environ.split(b"\0") if environ else None
 
     environ = wait_until(exec_done, 10, "the declared command exec'd")
     assert b"TOOL_MODE=safe" in environ

@@ -220,15 +220,23 @@ def first_output_through_filtered_is_the_trigger_tick_s(sys_) -> None:
     sub = sys_.client.session.declare_subscriber(
         K.data("sink/out"), lambda s: out.append(decode_data(s.payload.to_bytes()))
     )
+    # What filtered itself published (a hostile client's forgeries on its key included), for
+    # the failure's message: under --hostile the sample it held may have been a forgery.
+    made: list[bytes] = []
+    own = sys_.client.session.declare_subscriber(
+        K.data("filtered/out"), lambda s: made.append(s.payload.to_bytes())
+    )
     try:
         sys_.set_level(7.0)
         wait_until(lambda: any(o["value"] >= 100 for o in ticks(out)), 30,
                    "a sample through filtered")  # fmt: skip
         first = next(o for o in ticks(out) if o["value"] >= 100)
         trigger = [o for o in ticks(out) if 7 <= o["value"] < 100]
-        assert trigger, out
-        assert first["seq"] == trigger[-1]["seq"], out  # that tick's, not the next one
+        seen = {"sink": out, "filtered": made}
+        assert trigger, seen
+        assert first["seq"] == trigger[-1]["seq"], seen  # that tick's, not the next one
     finally:
+        own.undeclare()
         sub.undeclare()
 
 

@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from rra_agent.bus.client import wait_until as wait_for
+from rra_agent.host import procfs
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = str(ROOT / ".venv" / "bin" / "python") if (ROOT / ".venv").exists() else sys.executable
@@ -66,11 +67,7 @@ def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
 
 
 def pid_alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False
+    return procfs.state(pid) not in ("", "Z")
 
 
 def _cmdline(pid: int) -> str:
@@ -96,12 +93,8 @@ def _netns_inode(pid: int) -> int | None:
 def _group_members(pgid: int) -> list[int]:
     out = []
     for pid in _all_pids():
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        if fields[0] != "Z" and int(fields[2]) == pgid:
+        fields = procfs.stat(pid)
+        if fields is not None and fields[0] != "Z" and int(fields[2]) == pgid:
             out.append(pid)
     return out
 

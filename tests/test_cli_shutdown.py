@@ -26,6 +26,7 @@ from rra_agent.bus import messages as m
 from rra_agent.bus.client import BusClient, gather
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.engines.events import read_events
+from rra_agent.host import procfs
 from rra_agent.host.supervisor import State, StopPolicy, Supervisor
 
 #: Every test here starts processes or opens Zenoh sessions (pytest -m 'not system').
@@ -189,8 +190,7 @@ def test_the_engines_are_forks_of_the_fork_server_and_restart_as_such(tmp_path: 
 def check_forked(up: Up, name: str, pid: int) -> None:
     cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
     assert b"rra_agent.host.forkserver" in cmd, cmd
-    with open(f"/proc/{pid}/stat") as f:
-        assert int(f.read().rsplit(")", 1)[1].split()[1]) == up.proc.pid
+    assert procfs.parent(pid) == up.proc.pid
     assert os.readlink(f"/proc/{pid}/fd/1") == str(up.run_dir / "logs" / f"{name}.log")
 
 

@@ -20,6 +20,7 @@ from rra_agent.bus.client import wait_until
 from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.messages import NodeSpec, PortSpec
 from rra_agent.bus.session import open_session
+from rra_agent.host import procfs
 from rra_agent.host.processes import LocalHost
 from rra_agent.models.system import Command, Scheduling, Supervision
 
@@ -34,11 +35,6 @@ def spec(name: str, impl: str | Command = "rra_agent.nodes.generic.Relay") -> No
                "out": PortSpec(direction="publish", type="X", keys=["rra/fork/data/b"])},
         supervision=Supervision(heartbeat_timeout=0.4),
     )  # fmt: skip
-
-
-def parent_of(pid: int) -> int:
-    with open(f"/proc/{pid}/stat") as f:
-        return int(f.read().rsplit(")", 1)[1].split()[1])
 
 
 @pytest.fixture
@@ -69,7 +65,7 @@ def test_forked_node_is_our_child_and_its_exit_is_reaped_here(host: LocalHost, t
     pid = host.spawn(spec("n1"))
     assert pid_alive(pid)
     # adopted once the zygote's intermediate process has exited
-    wait_until(lambda: parent_of(pid) == os.getpid(), 5, "the adoption")
+    wait_until(lambda: procfs.parent(pid) == os.getpid(), 5, "the adoption")
     assert host.zygote is not None and pid != host.zygote.pid
     os.kill(pid, signal.SIGKILL)
     assert exits(host, pid) == -signal.SIGKILL  # as subprocess.Popen.returncode would say
@@ -111,7 +107,7 @@ def test_external_command_is_execed_with_its_env_and_stops_on_sigint(host: Local
     pid = host.spawn(spec("ext", cmd))
     log = tmp_path / "ext.log"
     wait_until(lambda: log.exists() and "got yes hb" in log.read_text(), 10, "its output")
-    assert parent_of(pid) == os.getpid()
+    assert procfs.parent(pid) == os.getpid()
     os.kill(pid, signal.SIGINT)  # not ignored, although the zygote ignores SIGINT
     assert exits(host, pid) == 0
 
@@ -181,7 +177,7 @@ def _our_children() -> set[int]:
                 pid = int(entry)
                 with open(f"/proc/{pid}/cmdline", "rb") as f:
                     forked = b"forkserver" in f.read()
-                if forked and parent_of(pid) == me and process_state(pid) not in ("Z", ""):
+                if forked and procfs.parent(pid) == me and process_state(pid) not in ("Z", ""):
                     out.add(pid)
             except (OSError, IndexError, ValueError):
                 pass
@@ -356,7 +352,7 @@ def test_the_host_agents_python_modules_run_forked_after_their_warm_up(tmp_path,
         assert statuses == {"ret": 3, "exit": 4, "raise": 1, "other": 5}
         log = {name: (logs / f"{name}.log").read_text() for name in commands}
         branch = int(log["ret"].split("warmed [", 1)[1].split("]", 1)[0])
-        assert branch != zygote and parent_of(branch) == zygote
+        assert branch != zygote and procfs.parent(branch) == zygote
         for name in ("ret", "exit", "raise"):
             args = commands[name][3:]
             assert (
@@ -396,7 +392,7 @@ def test_a_dead_branch_is_forked_again(tmp_path, monkeypatch):
                 os.kill(branches[0], signal.SIGKILL)
                 wait_until(lambda: not pid_alive(branches[0]), 10, "the branch's death")
         assert branches[0] != branches[1]
-        assert h.zygote is not None and parent_of(branches[1]) == h.zygote.pid
+        assert h.zygote is not None and procfs.parent(branches[1]) == h.zygote.pid
     finally:
         h.kill_all()
         hub.close()

@@ -93,6 +93,7 @@ from rra_agent.bus.config import BusConfig, free_port
 from rra_agent.bus.keys import Keys
 from rra_agent.engines.events import read_events
 from rra_agent.errors import RraError
+from rra_agent.host import procfs
 from rra_agent.host.processes import process_state
 from rra_agent.models.system import Supervision
 
@@ -190,12 +191,7 @@ def children(ppid: int) -> list[int]:
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        if int(fields[1]) == ppid:
+        if procfs.parent(int(entry)) == ppid:
             out.append(int(entry))
     return out
 

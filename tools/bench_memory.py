@@ -55,6 +55,7 @@ from _benchutil import interrupt, print_table
 
 from rra_agent.bus.client import BusClient, gather, wait_until
 from rra_agent.bus.config import BusConfig, free_port
+from rra_agent.host import procfs
 from rra_agent.package.loader import load_package
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -138,11 +139,7 @@ def _cmdline(pid: int) -> list[str]:
 
 
 def _parent(pid: int) -> int:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return int(f.read().rsplit(")", 1)[1].split()[1])
-    except (OSError, IndexError, ValueError):
-        return 0
+    return procfs.parent(pid) or 0
 
 
 def pss_kib(pid: int) -> int:

@@ -47,6 +47,7 @@ from rra_agent.core.plan import diff, standby_subscriptions, subscriptions, wiri
 from rra_agent.deployment import deploy
 from rra_agent.engines.actuator import ZenohActuator
 from rra_agent.engines.executor import Executor, spec_for
+from rra_agent.host import procfs
 
 
 def write_package(
@@ -131,12 +132,9 @@ def memory(root_pid: int) -> tuple[int, float, float]:
     children: dict[int, list[int]] = {}
     for entry in os.listdir("/proc"):
         if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(entry))
+            ppid = procfs.parent(int(entry))
+            if ppid is not None:
+                children.setdefault(ppid, []).append(int(entry))
     todo, pids = [root_pid], []
     while todo:
         pid = todo.pop()

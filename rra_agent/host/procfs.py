@@ -1,5 +1,5 @@
-"""What the kernel says of a process in ``/proc/PID/stat``: its state and when it started
-(with its pid, a process's identity: a pid is reused, the pair is not)."""
+"""What the kernel says of a process in ``/proc/PID/stat``: its state, its parent and when it
+started (with its pid, a process's identity: a pid is reused, the pair is not)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,12 @@ def state(pid: int) -> str:
     not reaped...), '' if gone."""
     fields = stat(pid)
     return fields[0] if fields else ""
+
+
+def parent(pid: int) -> int | None:
+    """The pid of the parent of process ``pid``; None if it is gone."""
+    fields = stat(pid)
+    return int(fields[1]) if fields else None
 
 
 def start_time(pid: int) -> int | None:

@@ -8,6 +8,12 @@ boolean for a number, nor a float for an ``int``); fields the type does not decl
 out of the decoded sample. A port whose type is not a declared data type (``rra validate``
 warns about it) only needs its samples to be msgpack maps.
 
+With ``finite=True`` (a node's inputs) the decoder itself refuses NaN and infinities in
+every float, except within the fields a type lists in ``non_finite``: a float there is
+``Annotated[float, Meta(ge=-MAX, le=MAX)]``, which NaN fails as the infinities do, checked in
+msgspec's C code. The Context Monitor decodes with ``finite=False`` and applies each
+measurement's own ``finite`` instead (`SampleType.nonfinite`).
+
 A `Refusal` says which source, why (one of `REASONS`) and what was wrong; a `Tally` counts
 them per source and reason. Pure: no I/O, no clock.
 """
@@ -16,10 +22,11 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any, NotRequired, TypedDict
+from typing import Annotated, Any, NotRequired, TypedDict
 
 import msgspec
 
@@ -49,6 +56,9 @@ _PRIMITIVES: dict[str, type] = {
     "bytes": bytes,
 }
 _LIST_RE = re.compile(r"^list\[(.+)\]$")
+#: A float a finite reader accepts: NaN fails both bounds, an infinity one of them.
+FiniteFloat = Annotated[float, msgspec.Meta(ge=-sys.float_info.max, le=sys.float_info.max)]
+_BOUND_RE = re.compile(r"^Expected `float` [<>]= \S+ - at `(?P<at>[^`]*)`$")
 #: Where in the sample a non-finite number is (``.ranges[3]``), or None.
 FiniteCheck = Callable[[Any], str | None]
 
@@ -109,10 +119,17 @@ class SampleType:
     def decode(self, source: str, raw: bytes | memoryview) -> dict[str, Any] | Refusal:
         try:
             return self.decoder.decode(raw)  # type: ignore[no-any-return]
-        except msgspec.ValidationError as e:
-            return Refusal(source, _validation_reason(str(e)), f"{self.name}: {e}")
         except msgspec.DecodeError as e:
+            return self.refused(source, e)
+
+    def refused(self, source: str, e: msgspec.DecodeError) -> Refusal:
+        """The refusal of a sample whose decoding raised ``e``."""
+        if not isinstance(e, msgspec.ValidationError):
             return Refusal(source, "malformed", f"not msgpack: {e}")
+        bound = _BOUND_RE.match(str(e))
+        if bound:  # only a FiniteFloat has bounds
+            return Refusal(source, "non_finite", f"{self.name}: {bound['at']} is not finite")
+        return Refusal(source, _validation_reason(str(e)), f"{self.name}: {e}")
 
 
 class _Untyped:
@@ -128,12 +145,19 @@ class _Untyped:
         try:
             data = self.decoder.decode(raw)
         except msgspec.DecodeError as e:
-            return Refusal(source, "malformed", f"not msgpack: {e}")
+            return self.refused(source, e)
         if not isinstance(data, dict):
-            return Refusal(
-                source, "not_a_map", f"a sample must be a map, got {type(data).__name__}"
-            )
+            return not_a_map(source, data)
         return data
+
+    def refused(self, source: str, e: msgspec.DecodeError) -> Refusal:
+        """The refusal of a sample whose decoding raised ``e``."""
+        return Refusal(source, "malformed", f"not msgpack: {e}")
+
+
+def not_a_map(source: str, data: Any) -> Refusal:
+    """The refusal of a sample that decoded to something other than a map."""
+    return Refusal(source, "not_a_map", f"a sample must be a map, got {type(data).__name__}")
 
 
 Decoder = SampleType | _Untyped
@@ -148,17 +172,20 @@ def _validation_reason(message: str) -> str:
 
 
 class SampleTypes:
-    """The decoders of every data type of a model, built once (see the module doc)."""
+    """The decoders of every data type of a model, built once (see the module doc);
+    ``finite``: they refuse non-finite numbers outside the types' ``non_finite`` fields."""
 
-    def __init__(self, data_types: Iterable[DataType]) -> None:
+    def __init__(self, data_types: Iterable[DataType], *, finite: bool = False) -> None:
         self.declared = {t.name: t for t in data_types}
-        self._typed: dict[str, Any] = {}
-        self._building: set[str] = set()
+        self._typed: dict[tuple[str, bool], Any] = {}
+        self._building: set[tuple[str, bool]] = set()
         self._checks: dict[str, FiniteCheck | None] = {}
         self.types: dict[str, SampleType] = {}
         for name in self.declared:
             self.types[name] = SampleType(
-                name, msgspec.msgpack.Decoder(self._typeddict(name)), self._finite_check(name)
+                name,
+                msgspec.msgpack.Decoder(self._typeddict(name, finite)),
+                self._finite_check(name),
             )
 
     def for_port(self, type_name: str | None) -> Decoder:
@@ -166,30 +193,33 @@ class SampleTypes:
         return self.types.get(type_name or "", _UNTYPED)
 
     # ---- the TypedDicts ------------------------------------------------------------------
-    def _typeddict(self, name: str) -> Any:
-        if name in self._typed:
-            return self._typed[name]
-        if name in self._building:  # a recursive type: its inner occurrences are any map
+    def _typeddict(self, name: str, finite: bool) -> Any:
+        key = (name, finite)
+        if key in self._typed:
+            return self._typed[key]
+        if key in self._building:  # a recursive type: its inner occurrences are any map
             return dict[str, Any]
-        self._building.add(name)
+        self._building.add(key)
         dt = self.declared[name]
         fields: dict[str, Any] = {}
         for fname, expr in dt.fields.items():
-            tp = self._python_type(expr)
+            tp = self._python_type(expr, finite and fname not in dt.non_finite)
             fields[fname] = NotRequired[tp] if fname in dt.optional else tp
-        self._building.discard(name)
-        self._typed[name] = TypedDict(name, fields)  # type: ignore[operator]
-        return self._typed[name]
+        self._building.discard(key)
+        self._typed[key] = TypedDict(name, fields)  # type: ignore[operator]
+        return self._typed[key]
 
-    def _python_type(self, expr: str) -> Any:
+    def _python_type(self, expr: str, finite: bool) -> Any:
         expr = expr.strip()
         match = _LIST_RE.match(expr)
         if match:
-            return list[self._python_type(match[1])]  # type: ignore[misc]
+            return list[self._python_type(match[1], finite)]  # type: ignore[misc]
+        if expr == "float" and finite:
+            return FiniteFloat
         if expr in _PRIMITIVES:
             return _PRIMITIVES[expr]
         if expr in self.declared:
-            return self._typeddict(expr)
+            return self._typeddict(expr, finite)
         return Any  # an unknown type name: `rra validate` reports it
 
     # ---- where the non-finite numbers are ------------------------------------------------
@@ -272,3 +302,23 @@ def _any_nonfinite(value: Any) -> str | None:
 
 
 _UNTYPED = _Untyped()
+
+
+def nested(data_types: Iterable[DataType], names: Iterable[str]) -> list[DataType]:
+    """The data types named (those declared) and every declared type they nest, in their
+    declaration order: what a reader of ports of types ``names`` needs to decode them."""
+    declared = {t.name: t for t in data_types}
+    seen: set[str] = set()
+    todo = [n for n in names if n in declared]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        for expr in declared[name].fields.values():
+            inner = expr.strip()
+            while (match := _LIST_RE.match(inner)) is not None:
+                inner = match[1].strip()
+            if inner in declared:
+                todo.append(inner)
+    return [t for t in declared.values() if t.name in seen]

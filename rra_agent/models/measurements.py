@@ -18,6 +18,10 @@ it reads and in the value it computes unless it says ``finite: false`` (a distan
 ``inf`` when nothing is in sight), and a value outside its ``plausible`` bounds. Refused
 samples never reach the rules; the Context Monitor counts them per source and reason.
 
+Nodes trust their inputs the same way: a subscriber port whose type is a declared data type
+delivers to the node only samples of that type, with finite numbers except in the fields the
+type lists in ``non_finite`` (`rra_agent.node.core.NodeCore.deliver`).
+
 A measurement may instead be a host's reachability (``reachable: base_station``, type
 ``bool``): true while that host's agent is reachable from the engines, false from the moment
 its link is lost (within the bus lease). The Context Monitor publishes it like any other, so
@@ -57,6 +61,10 @@ class DataType(FrozenModel, frozen=True):
     fields: dict[str, str] = {}
     #: Fields a sample may leave out (every other field is required).
     optional: list[str] = []
+    #: Fields whose numbers may be NaN or infinite (a scan's ``ranges``: ``inf`` where
+    #: nothing returned). A node's typed input refuses a sample with a non-finite number in
+    #: any other field.
+    non_finite: list[str] = []
     #: Function name -> dotted Python path of a callable taking one value of this type.
     functions: dict[str, str] = {}
     description: str | None = None

@@ -427,6 +427,10 @@ class _Checker:
             if name not in dt.fields:
                 msg = unknown_name("field", name, dt.fields, f" of {dt.name}")
                 self.error("measurements", (*path, "optional", j), msg)
+        for j, name in enumerate(dt.non_finite):
+            if name not in dt.fields:
+                msg = unknown_name("field", name, dt.fields, f" of {dt.name}")
+                self.error("measurements", (*path, "non_finite", j), msg)
         for name, dotted in dt.functions.items():
             problem = self.callable_problem(dotted)
             if problem:

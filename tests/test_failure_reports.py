@@ -309,7 +309,7 @@ def test_a_failing_component_reports_its_own_exception_and_its_neighbour_goes_on
         wait_until(lambda: pub.matching_status.matching, DEADLINE, "c_relay's subscriber")
 
         def relayed() -> bool:
-            pub.put(encode_data({"value": 1.0}))
+            pub.put(encode_data({"seq": 1, "value": 1.0}))
             return any(o.get("relay") == "c_relay" for o in got)
 
         wait_until(relayed, DEADLINE, "a sample through c_relay", interval=0.05)

@@ -129,7 +129,7 @@ def test_start_run_data_and_stop(agent, procs):
     start(client, watch, procs)
     pub = client.session.declare_publisher(K.data("src"))
     wait_until(lambda: pub.matching_status.matching, 5, "the relay's subscriber")
-    pub.put(encode_data({"value": 41.0}))
+    pub.put(encode_data({"seq": 1, "value": 41.0}))
     wait_until(lambda: watch.data, 5, "relayed sample")
     assert watch.data[0]["value"] == 42.0
 
@@ -254,7 +254,7 @@ def test_malformed_requests_and_samples_crash_nothing_and_are_counted(agent, pro
     wait_until(lambda: pub.matching_status.matching, 5, "the relay's subscriber")
     pub.put(b"\x80" * (17 * 1024 * 1024))
     pub.put(b"\x80" * (MAX_PAYLOAD["data"] + 16))
-    pub.put(encode_data({"value": 1.0}))
+    pub.put(encode_data({"seq": 1, "value": 1.0}))
     wait_until(lambda: watch.data, 10, "the good sample relayed")
     assert ok(client.node("relay", m.Stats()))["dropped"] == 1  # type: ignore[index]
     junk = [b"", b"\xc1", b"\x81\xa1t\xa3zzz", bytes(range(256))]
@@ -527,7 +527,7 @@ def send_until_seen(client: BusClient, outs: Outputs, names: list[str], value: f
         wait_until(lambda: pub.matching_status.matching, 5, "the relays' subscribers")
 
         def seen() -> bool:
-            pub.put(encode_data({"value": value}))
+            pub.put(encode_data({"seq": 1, "value": value}))
             return all(any(o["value"] > value for o in outs.by[n]) for n in names)
 
         wait_until(seen, 10, f"samples through {names}", interval=0.05)

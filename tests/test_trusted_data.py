@@ -125,6 +125,67 @@ def test_ill_typed_non_finite_and_implausible_samples_are_refused_counted_and_ne
     assert "dropped (malformed): source.out: not msgpack" in logs
 
 
+def node_counters(sys_, name: str) -> dict[str, int]:
+    """A node's counters (``rejected``, ``dropped`` and the further ones by name)."""
+    stats = sys_.gather()["stats"].get(f"node:{name}")
+    if stats is None:
+        return {}
+    return {"rejected": stats["rejected"], "dropped": stats["dropped"], **stats["counters"]}
+
+
+def test_a_node_s_typed_input_refuses_forged_samples_so_it_never_relays_them(system):
+    """``direct`` (a Relay, its input of type Sample) gets the forged samples on source.out:
+    each is refused and counted per reason in its own counters, and nothing it publishes is
+    ill-typed or non-finite (on the old code it relayed them as they came, NaN included)."""
+    sys_ = system()
+    relayed: list[bytes] = []
+    sub = sys_.client.session.declare_subscriber(
+        K.data("direct/out"), lambda s: relayed.append(s.payload.to_bytes())
+    )
+    pub = sys_.client.session.declare_publisher(K.data("source/out"))
+    node_reasons = ("missing_field", "wrong_type", "non_finite", "malformed", "not_a_map")
+
+    def counted() -> bool:
+        for reason in node_reasons:  # again on each look: a put before the route is lost
+            for p in FORGED[reason]:
+                pub.put(p, attachment=m.pack_stamp(1.0))
+        got = node_counters(sys_, "direct")
+        return all(got.get(r, 0) >= len(FORGED[r]) for r in node_reasons)
+
+    try:
+        wait_until(counted, 30, "direct's refusals of every forged kind", interval=0.2)
+        wait_until(lambda: len(own(relayed)) >= 3, 10, "direct relaying the source's ticks")
+    finally:
+        pub.undeclare()
+        sub.undeclare()
+    got = node_counters(sys_, "direct")
+    assert got["rejected"] >= 5 and got["dropped"] >= 2, got
+    bad = [s for s in own(relayed) if not well_typed(s)]
+    assert not bad, f"direct relayed {len(bad)} forged samples, e.g. {bad[:3]}"
+
+
+def own(relayed: list[bytes]) -> list[dict]:
+    """What ``direct`` itself published (a Relay names itself in ``relay``); a hostile
+    client's forgeries on its key (``--hostile``) do not."""
+    out = []
+    for raw in relayed:
+        with contextlib.suppress(msgspec.DecodeError):
+            sample = msgspec.msgpack.decode(raw)
+            if isinstance(sample, dict) and sample.get("relay") == "direct":
+                out.append(sample)
+    return out
+
+
+def well_typed(sample: dict) -> bool:
+    seq, value = sample.get("seq"), sample.get("value")
+    return (
+        type(seq) is int
+        and type(sample.get("count")) is int
+        and type(value) in (int, float)
+        and math.isfinite(value)
+    )
+
+
 _CTX = m.Codec[m.CtxMessage](m.CtxMessage)
 
 

@@ -31,6 +31,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import msgspec
 
+from rra_agent.models.measurements import DataType
 from rra_agent.models.system import Implementation, ParamType, Scheduling, Supervision
 from rra_agent.package.bundle import ModelBundle
 
@@ -487,6 +488,19 @@ class PortSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     standby: list[str] = []
 
 
+def typed_ports(
+    node: str, ports: dict[str, PortSpec], declared: dict[str, str]
+) -> dict[str, PortSpec]:
+    """``ports`` as the model declares them: each of the type ``declared`` says (port name ->
+    type); ``ValueError`` for a port the model does not declare."""
+    out: dict[str, PortSpec] = {}
+    for name, port in ports.items():
+        if name not in declared:
+            raise ValueError(f"node {node}: port {name!r} is not one the model declares")
+        out[name] = msgspec.structs.replace(port, type=declared[name])
+    return out
+
+
 class Ros2Spec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_fields=True):
     """A node's ROS 2 side (docs/ros2.md), filled in by its host agent from its own copy of
     the model: the system's ROS domain and distribution, the package's interface files on
@@ -538,6 +552,10 @@ class NodeSpec(msgspec.Struct, kw_only=True, omit_defaults=True, forbid_unknown_
     fence: Fence | None = None
     #: Its ROS 2 side, if it has one (set by the host agent).
     ros2: Ros2Spec | None = None
+    #: The declared data types its subscriber ports carry, with the types they nest (set by
+    #: the host agent from its own copy of the model): each input sample is decoded against
+    #: its port's type and refused, counted, if it does not match or is not finite.
+    types: list[DataType] = []
 
 
 # ---- host agent control -----------------------------------------------------------------
@@ -911,8 +929,9 @@ def spec_digest(spec: NodeSpec) -> str:
     """What a node is configured to be (implementation, host, parameters, wiring, active),
     as a short hash: equal digests, equal configurations. The state to take over, the fence
     and the import path (each host derives it from its own copy of the package) are not
-    part of it, nor its ROS 2 side (each host derives it from its model, like the path)."""
-    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[], ros2=None)
+    part of it, nor its ROS 2 side and its data types (each host derives them from its
+    model, like the path)."""
+    fixed = msgspec.structs.replace(spec, state=None, fence=None, path=[], ros2=None, types=[])
     return _short_hash(fixed)
 
 

@@ -302,10 +302,7 @@ def _hub_agent(
 ) -> HostAgent:
     """The host agent of ``rra up``'s host: the hub (its router), which starts the engines
     (``specs``) and prints the nodes' states as they change."""
-    catalog = Catalog(
-        dep.configured, args.host, package_root=dep.package.root, default_host=True,
-        ros2=dep.package.manifest.ros2,
-    )  # fmt: skip
+    catalog = Catalog.of(dep, args.host, default_host=True)
     catalog.add_builtins(specs)
     agent = HostAgent(
         dep.system,

@@ -514,8 +514,7 @@ class HostAgent:
             dep = deploy_bundle(bundle, self.models)
         except RraError as e:
             return m.Err(message=f"host {self.host}: {e}", code="invalid")
-        catalog = Catalog(dep.configured, self.host, package_root=dep.package.root,
-                          default_host=self.catalog.default_host)  # fmt: skip
+        catalog = Catalog.of(dep, self.host, default_host=self.catalog.default_host)
         catalog.add_builtins(self.catalog.builtins.values())
         self._next = (bundle.digest, catalog, dep)
         return m.Ok(result={"models": bundle.digest})
@@ -991,10 +990,7 @@ def run(args) -> int:  # argparse.Namespace
     dep = deploy(args.package, [n.strip() for v in args.select for n in v.split(",") if n.strip()])
     if args.system and args.system != dep.system:
         raise RraError(f"--system {args.system}: the package's system is {dep.system}")
-    catalog = Catalog(
-        dep.configured, args.host, package_root=dep.package.root, default_host=args.hub,
-        ros2=dep.package.manifest.ros2,
-    )
+    catalog = Catalog.of(dep, args.host, default_host=args.hub)
     schedule_self(dep.package.manifest.agents, f"rra agent {args.host}")
     agent = HostAgent(
         dep.system,

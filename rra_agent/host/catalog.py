@@ -12,7 +12,9 @@ parameter declarations and supervision all come from the model on this host:
 - the implementation is one of the component's declared implementations, compared whole:
   an external command with another argument, environment variable or working directory is
   not the declared one;
-- every parameter is declared and within its declared type and bounds.
+- every parameter is declared and within its declared type and bounds;
+- every port is one the component declares, of the type it declares; the data types of its
+  inputs (and the types they nest) go with the spec, for the node to check its samples.
 
 Processes the host agent starts itself (``rra up``'s engines) are registered as built-ins;
 a request from the bus may not start or respecify them.
@@ -22,13 +24,16 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import msgspec
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.keys import check_chunk
+from rra_agent.core.samples import nested
 from rra_agent.host.forkserver import python_module
 from rra_agent.models.manifest import Ros2Settings
+from rra_agent.models.measurements import DataType
 from rra_agent.models.system import (
     CONTAINER,
     Component,
@@ -38,6 +43,9 @@ from rra_agent.models.system import (
     is_ros2_implementation,
 )
 from rra_agent.package.ros2 import interfaces_folder, node_name
+
+if TYPE_CHECKING:
+    from rra_agent.deployment import Deployment
 
 
 class Refused(Exception):
@@ -66,8 +74,10 @@ class Catalog:
         package_root: str | Path,
         default_host: bool = False,
         ros2: Ros2Settings | None = None,
+        data_types: Iterable[DataType] = (),
     ) -> None:
         self.system = model.system
+        self.data_types = list(data_types)
         self.host = host
         self.default_host = default_host
         self.path = [str(Path(package_root).resolve())]
@@ -81,6 +91,20 @@ class Catalog:
             if c.host == host or (c.host is None and default_host)
         }
         self.builtins: dict[str, m.NodeSpec] = {}
+
+    @classmethod
+    def of(cls, dep: Deployment, host: str, *, default_host: bool = False) -> Catalog:
+        """The catalog of ``host`` in a deployment: its configured system model, its package
+        folder, its ``ros2:`` settings and its data types."""
+        return cls(
+            dep.configured, host, package_root=dep.package.root, default_host=default_host,
+            ros2=dep.package.manifest.ros2, data_types=dep.package.measurements.data_types,
+        )  # fmt: skip
+
+    def types_of(self, c: Component) -> list[DataType]:
+        """The data types the inputs of ``c`` carry, with the types they nest."""
+        inputs = (p.type for p in c.ports if p.direction == "subscribe")
+        return nested(self.data_types, inputs)
 
     def add_builtins(self, specs: Iterable[m.NodeSpec]) -> None:
         """Processes this host agent starts on its own (never from a request)."""
@@ -127,6 +151,8 @@ class Catalog:
                             k: msgspec.to_builtins(m.ParamDecl(type=p.type, min=p.min, max=p.max))
                             for k, p in c.parameters.items()
                         },
+                        "ports": {p.name: p.type for p in c.ports},
+                        "types": msgspec.to_builtins(self.types_of(c)),
                     }
                     for c in members
                 }
@@ -173,6 +199,10 @@ class Catalog:
                 "not one the model declares for it"
             )
         impl = declared[declared.index(spec.implementation)]
+        try:
+            ports = m.typed_ports(name, spec.ports, {p.name: p.type for p in c.ports})
+        except ValueError as e:
+            raise Refused(str(e)) from None
         decl = {k: m.ParamDecl(type=p.type, min=p.min, max=p.max) for k, p in c.parameters.items()}
         for key, value in spec.params.items():
             d = decl.get(key)
@@ -192,6 +222,8 @@ class Catalog:
             scheduling=c.scheduling,
             path=list(self.path) if isinstance(impl, str) else [],
             ros2=self.ros2_spec(c, impl),
+            ports=ports,
+            types=self.types_of(c),
         )
 
     def ros2_spec(self, c: Component, impl: Implementation) -> m.Ros2Spec | None:

@@ -15,7 +15,8 @@ components saves the interpreter, the session and the scheduling of a process pe
 
 What a container loads is what its host agent's model declares: the container's own spec
 (from the host agent, never from the bus) lists its members' implementations and parameter
-declarations, and a `LoadNode` naming anything else, or a value out of bounds, is refused.
+declarations, its ports' types and the data types they carry, and a `LoadNode` naming anything
+else, a port it does not declare, or a value out of bounds, is refused.
 
 The main loop steps every component at its ``rate_hz`` and beats the container's heartbeat
 only while it can take every component's lock: a component stuck in a callback stops the
@@ -44,6 +45,7 @@ from rra_agent.bus.counters import Counters, Refused, receive
 from rra_agent.bus.heartbeat import Heartbeat
 from rra_agent.bus.keys import Keys
 from rra_agent.bus.session import CONTROL_QOS, beat_period, open_session
+from rra_agent.models.measurements import DataType
 from rra_agent.models.system import coerce_parameter
 from rra_agent.node.api import NodeError
 from rra_agent.node.core import NodeCore
@@ -66,6 +68,9 @@ class MemberDecl(msgspec.Struct, frozen=True):
 
     implementations: list[str]
     decl: dict[str, m.ParamDecl] = {}
+    #: Its ports' declared types (port name -> type), and the data types its inputs carry.
+    ports: dict[str, str] = {}
+    types: list[DataType] = []
 
 
 def members_of(spec: m.NodeSpec) -> dict[str, MemberDecl]:
@@ -209,9 +214,14 @@ class ContainerRuntime:
                     coerce_parameter(d.type, value, d.min, d.max)
                 except ValueError as e:
                     raise NodeError(f"{spec.name}: parameter {key}: {e}") from None
+        try:
+            ports = m.typed_ports(spec.name, spec.ports, member.ports)
+        except ValueError as e:
+            raise NodeError(str(e)) from None
         return msgspec.structs.replace(
-            spec, decl=member.decl, host=self.spec.host, path=list(self.spec.path)
-        )
+            spec, decl=member.decl, host=self.spec.host, path=list(self.spec.path),
+            ports=ports, types=list(member.types),
+        )  # fmt: skip
 
     def _load(self, spec: m.NodeSpec) -> m.Reply:
         try:

@@ -18,8 +18,9 @@ from rra_agent import trace
 from rra_agent.bus import failure
 from rra_agent.bus import messages as m
 from rra_agent.bus.counters import MAX_PAYLOAD, Counters, RateLimitedLog
-from rra_agent.bus.data import DATA_DECODER, DATA_ENCODER
+from rra_agent.bus.data import DATA_ENCODER
 from rra_agent.core.election import Term, newer
+from rra_agent.core.samples import MALFORMED, Decoder, Refusal, SampleTypes, not_a_map
 from rra_agent.models.system import ParamType, coerce_parameter
 from rra_agent.node.api import Node, NodeContext, NodeError, RawCallback
 from rra_agent.node.reflex import Fire, Reflexes
@@ -104,6 +105,13 @@ class NodeCore:
         }
         #: Output port names (a port never changes direction; `publish` checks this set only).
         self._outputs = frozenset(n for n, p in self.ports.items() if p.direction == "publish")
+        #: How each input port's samples are decoded: against its declared data type, finite
+        #: numbers only but in the type's ``non_finite`` fields (a port of an undeclared type:
+        #: any map).
+        types = SampleTypes(spec.types, finite=True)
+        self._decoders: dict[str, Decoder] = {
+            n: types.for_port(p.type) for n, p in self.ports.items() if n not in self._outputs
+        }
         self.active = spec.active
         #: Declared type and bounds per parameter (from the spec, else the initial values').
         self.decl: dict[str, m.ParamDecl] = dict(spec.decl)
@@ -199,19 +207,27 @@ class NodeCore:
         would (seen in ``tools/bench_recovery.py``'s traces: one more physics step driven by
         the old controller).
 
+        A sample that is not of the port's declared data type, or carries NaN or an infinity
+        where the type does not allow one, never reaches the node: it is refused and counted
+        (`_refuse_sample`).
+
         The per-sample hot path: decoding and the node call are inlined (no helper frames),
         and the lock is taken without ``with`` (half the cost).
         """
         if len(payload) > self.max_data:
             self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return
-        try:
-            data = DATA_DECODER.decode(payload)
-        except msgspec.DecodeError as e:
-            self._drop(port, f"not msgpack: {e}")
+        decoder = self._decoders.get(port)
+        if decoder is None:
+            self._drop(port, "not an input port of this node")
             return
-        if not isinstance(data, dict):
-            self._drop(port, f"a data sample must be a map, got {type(data).__name__}")
+        try:
+            data = decoder.decoder.decode(payload)
+        except msgspec.DecodeError as e:
+            self._refuse_sample(port, decoder.refused(port, e))
+            return
+        if type(data) is not dict:  # a port of an undeclared type: any map
+            self._refuse_sample(port, not_a_map(port, data))
             return
         lock = self.lock
         lock.acquire()
@@ -252,17 +268,19 @@ class NodeCore:
                         self._fire_due()
 
     def _valid(self, port: str, payload: bytes) -> bool:
-        """Whether ``payload`` is a data sample `deliver` would accept (else dropped, counted)."""
+        """Whether ``payload`` is a data sample `deliver` would accept (else refused, counted)."""
         if len(payload) > self.max_data:
             self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
             return False
-        try:
-            ok = isinstance(DATA_DECODER.decode(payload), dict)
-        except msgspec.DecodeError:
-            ok = False
-        if not ok:
-            self._drop(port, "not a msgpack map")
-        return ok
+        decoder = self._decoders.get(port)
+        if decoder is None:
+            self._drop(port, "not an input port of this node")
+            return False
+        decoded = decoder.decode(port, payload)
+        if isinstance(decoded, Refusal):
+            self._refuse_sample(port, decoded)
+            return False
+        return True
 
     def _replay(self, port: str, keys: Iterable[str]) -> None:
         """Deliver the held samples of newly selected ``keys`` (if young enough)."""
@@ -275,6 +293,19 @@ class NodeCore:
         with self.lock:
             self.counters.dropped += 1
         self._refusals(f"dropped sample on {port}", why)
+
+    def _refuse_sample(self, port: str, refusal: Refusal) -> None:
+        """A sample `deliver` does not hand to the node: one that is not even a msgpack map
+        is dropped, one of another type or with a non-finite number is rejected; both are
+        counted per reason (``wrong_type``, ``non_finite``...) and logged, rate-limited."""
+        if refusal.reason in MALFORMED:
+            self._drop(port, refusal.detail)
+        else:
+            with self.lock:
+                self.counters.rejected += 1
+            self._refusals(f"refused sample on {port}", refusal.detail)
+        with self.lock:
+            self.counters.bump(refusal.reason)
 
     @property
     def received(self) -> int:

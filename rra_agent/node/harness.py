@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.data import decode_data, encode_data
+from rra_agent.models.measurements import DataType
 from rra_agent.node.api import Node, RawCallback
 from rra_agent.node.core import NodeCore
+from rra_agent.package.functions import load_measurements
 
 
 class _CaptureTransport:
@@ -37,6 +40,11 @@ class NodeHarness:
     >>> h = NodeHarness(MyNode, params={"gain": 2.0}, ports={"out": ("publish", "Cmd")})
     >>> h.send("in", {"x": 1.0}); h.step(0.01)
     >>> h.outputs("out")
+
+    ``types``: the data types of ``measurements.yaml``, as `DataType`s or as the folder of
+    the package that declares them: an input port of a declared type refuses what its type
+    does not allow (counted: ``h.core.counters``), as on the bus; an input of an undeclared
+    type takes any map.
     """
 
     def __init__(
@@ -50,7 +58,10 @@ class NodeHarness:
         state: Any = None,
         now: float = 0.0,
         path: list[str] | None = None,
+        types: Iterable[DataType] | str | Path = (),
     ) -> None:
+        if isinstance(types, str | Path):
+            types = load_measurements(types).data_types
         self.time = now
         self.transport = _CaptureTransport()
         spec = m.NodeSpec(
@@ -66,6 +77,7 @@ class NodeHarness:
             active=active,
             state=state,
             path=list(path or []),
+            types=list(types),
         )
         self.logs: list[str] = []
         #: The reflexes that fired (`ReflexFired`), as the node reported them.

@@ -15,6 +15,7 @@ from conftest import ROOT
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.config import BusConfig
+from rra_agent.bus.counters import RateLimitedLog
 from rra_agent.bus.data import encode_data
 from rra_agent.core.samples import Refusal, SampleTypes, nested
 from rra_agent.deployment import deploy
@@ -119,9 +120,11 @@ def test_a_typed_input_hands_the_node_only_samples_of_its_type_and_counts_the_re
     assert counters.rejected == sum(len(v) for r, v in BAD.items() if r != "not_a_map")
     assert {r: counters.extra.get(r) for r in BAD} == {r: len(v) for r, v in BAD.items()}
     assert counters.extra["malformed"] == 1
-    # one line per kind at once (then rate-limited): the first refusal says what was wrong
+    # the first refusal of each reason at once (then rate-limited), saying what was wrong
     assert h.logs == [
         "[node] refused sample on in: Cmd: Object missing required field `pose`",
+        "[node] refused sample on in: Cmd: Expected `int`, got `str` - at `$.seq`",
+        "[node] refused sample on in: Cmd: $.speeds[1] is not finite",
         "[node] dropped sample on in: Cmd: Expected `object`, got `array`",
     ]
     h.send("in", {**GOOD, "extra": 3, "note": "hi"})
@@ -258,3 +261,22 @@ def test_a_reload_s_catalog_keeps_the_ros2_side_and_the_data_types(tmp_path):
     prepared = agent._next[1]
     assert prepared.ros2 == agent.catalog.ros2 is not None
     assert prepared.data_types == agent.catalog.data_types
+
+
+# ---- what is logged -----------------------------------------------------------------------
+def test_a_flood_of_one_source_s_junk_never_hides_another_source_s_first_refusal():
+    """Under a hostile client, junk on an engine's control endpoint came first and took the
+    monitor's one "dropped (malformed)" line per 10 s: source.out's went unlogged."""
+    lines: list[str] = []
+    now = [0.0]
+    log = RateLimitedLog(lines.append, period=10.0, clock=lambda: now[0])
+    for _ in range(100):
+        log("dropped (malformed)", "process request: junk", "request")
+    log("dropped (malformed)", "source.out: not msgpack", "source.out")
+    assert lines == [
+        "dropped (malformed): process request: junk",
+        "dropped (malformed): source.out: not msgpack",
+    ]
+    now[0] = 11.0
+    log("dropped (malformed)", "process request: junk", "request")
+    assert lines[-1] == "dropped (malformed): process request: junk (100 since the last report)"

@@ -156,7 +156,9 @@ def _rule(rid: str, key: str, limit: int, messages: list[str]) -> dict[str, Any]
 
 
 class RateLimitedLog:
-    """Log the first refusal of each kind at once, then one line per ``period`` at most."""
+    """Log the first refusal of each kind at once, then one line per ``period`` at most.
+    A kind is ``kind``, or (``kind``, ``about``) when the caller says what it is about (a
+    source): a flood of one source's junk then never hides another's first refusal."""
 
     def __init__(
         self,
@@ -168,18 +170,18 @@ class RateLimitedLog:
         self.period = period
         self.clock = clock
         self._lock = threading.Lock()
-        self._last: dict[str, float] = {}
-        self._pending: dict[str, int] = {}
+        self._last: dict[tuple[str, str], float] = {}
+        self._pending: dict[tuple[str, str], int] = {}
 
-    def __call__(self, kind: str, detail: str) -> None:
-        now = self.clock()
+    def __call__(self, kind: str, detail: str, about: str = "") -> None:
+        now, key = self.clock(), (kind, about)
         with self._lock:
-            last = self._last.get(kind)
-            self._pending[kind] = self._pending.get(kind, 0) + 1
+            last = self._last.get(key)
+            self._pending[key] = self._pending.get(key, 0) + 1
             if last is not None and now - last < self.period:
                 return
-            count = self._pending.pop(kind)
-            self._last[kind] = now
+            count = self._pending.pop(key)
+            self._last[key] = now
         more = f" ({count} since the last report)" if last is not None and count > 1 else ""
         self.emit(f"{kind}: {detail}{more}")
 

@@ -194,10 +194,11 @@ class EngineProcess(Generic[Loaded]):
         c.extra["leading"] = int(self.leading)
         return c.stats(self.name, self.role, os.getpid())
 
-    def refuse(self, kind: str, detail: str) -> None:
-        """Count a refused sample or request and log it (rate-limited)."""
+    def refuse(self, kind: str, detail: str, about: str = "") -> None:
+        """Count a refused sample or request and log it (rate-limited per kind and
+        ``about``)."""
         self.counters.rejected += 1
-        self._refusals(f"refused ({kind})", detail)
+        self._refusals(f"refused ({kind})", detail, about)
 
     def leader_state(self, sample: zenoh.Sample, leaders: Any) -> m.EngineState | None:
         """The Run-time Resolution Engine's state in ``sample`` if it comes from its live
@@ -211,9 +212,9 @@ class EngineProcess(Generic[Loaded]):
             return None
         return state
 
-    def drop(self, kind: str, detail: str) -> None:
+    def drop(self, kind: str, detail: str, about: str = "") -> None:
         self.counters.dropped += 1
-        self._refusals(f"dropped ({kind})", detail)
+        self._refusals(f"dropped ({kind})", detail, about)
 
     # ---- control endpoints (Zenoh thread) ----------------------------------------------
     def _on_engine_query(self, query: zenoh.Query) -> None:

@@ -10,7 +10,7 @@ Trust: a sample is decoded against its port's declared data type as it arrives, 
 thread (`rra_agent.core.samples`); one that is too large, not msgpack, ill-typed, or holds
 a non-finite or implausible value a measurement reads is refused: it never reaches the
 rules, never displaces the newest good sample of its source, and is counted per source and
-reason (``rra status``) and logged at most once per 10 s per kind.
+reason (``rra status``) and logged at most once per 10 s per source and reason.
 
 Overload: the Zenoh callback only keeps the newest good sample of each source; the main loop
 computes from those (latest-value coalescing: both synchronisation policies only ever use
@@ -201,12 +201,14 @@ class ContextMonitorProcess(EngineProcess[tuple[Deployment, ContextMonitor]]):
         return data_limit(port.max_bytes if port is not None else None)
 
     def _refused(self, refusal: Refusal) -> None:
-        """Count a refused sample as the process's (dropped: malformed; else rejected)."""
+        """Count a refused sample as the process's (dropped: malformed; else rejected),
+        logged once per 10 s per source and reason: junk on one key (or on the control
+        endpoint) never hides the first refusal of another source."""
         detail = f"{refusal.source}: {refusal.detail}"
         if refusal.reason in MALFORMED:
-            self.drop(refusal.reason, detail)
+            self.drop(refusal.reason, detail, refusal.source)
         else:
-            self.refuse(refusal.reason, detail)
+            self.refuse(refusal.reason, detail, refusal.source)
 
     # ---- bus (Zenoh thread): keep the newest good sample per source, compute if idle ------
     def _on_sample(self, source: str) -> Callable[[zenoh.Sample], None]:

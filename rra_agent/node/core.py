@@ -303,7 +303,7 @@ class NodeCore:
         else:
             with self.lock:
                 self.counters.rejected += 1
-            self._refusals(f"refused sample on {port}", refusal.detail)
+            self._refusals(f"refused sample on {port}", refusal.detail, refusal.reason)
         with self.lock:
             self.counters.bump(refusal.reason)
 

@@ -16,11 +16,15 @@ started by ``dora run``):
 - **chain start**: a 10-node chain (a 100 Hz source, 8 echoes, a recorder): from starting
   ``rra up PKG`` / ``dora run dataflow.yml`` to the first sample at the recorder.
 
+``--peer-nodes`` runs rra-agent's nodes as peers linked directly (``rra up --peer-nodes``)
+instead of clients of the host's router.
+
 Prints median and p99 of each side, the ratio rra/dora and the goal beside it, and the load
 average before and after. dora-rs is an optional benchmark dependency (the ``peer`` extra:
 ``.venv/bin/pip install -e '.[peer]'``); without it the tool says so and exits 2.
 
     .venv/bin/python tools/bench_peer.py [--runs 3] [--n 2000] [--only roundtrip,restart,chain]
+                                         [--peer-nodes]
 """
 
 from __future__ import annotations
@@ -55,6 +59,8 @@ _PING = (
 #: dora's counterpart of rra-agent's restart as shipped: at once, every time.
 _DORA_RESTART = "    restart_policy: always\n    restart_delay: 0.0\n"
 _TICK = "  - name: Tick\n    fields: {pid: int, seq: int}\n"
+#: Further flags of every ``rra up`` (``--peer-nodes``).
+UP_FLAGS: list[str] = []
 
 
 # ----------------------------------------------------------------------------- rra-agent
@@ -129,7 +135,7 @@ def rra_up(pkg: Path, run_dir: Path) -> Iterator[subprocess.Popen[bytes]]:
     """``rra up pkg`` (loopback, a free port, quiet), stopped with SIGINT at the end."""
     up = subprocess.Popen(
         [sys.executable, "-m", "rra_agent", "up", str(pkg), "--run-dir", str(run_dir), "-q",
-         "--connect", f"tcp/127.0.0.1:{free_port()}", "--no-multicast"],
+         "--connect", f"tcp/127.0.0.1:{free_port()}", "--no-multicast", *UP_FLAGS],
         env={**os.environ, "RERUN_ANALYTICS": "0"},
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip
@@ -352,7 +358,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warm", type=int, default=200, help="unmeasured round trips first (200)")
     ap.add_argument("--kills", type=int, default=1, help="kills per restart run (1)")
     ap.add_argument("--only", default="roundtrip,restart,chain", help="figures to measure")
+    ap.add_argument(
+        "--peer-nodes", action="store_true", help="rra-agent's nodes as peers (rra up --peer-nodes)"
+    )
     args = ap.parse_args(argv)
+    if args.peer_nodes:
+        UP_FLAGS.append("--peer-nodes")
+    print(f"rra-agent's nodes: {'peers (--peer-nodes)' if args.peer_nodes else 'clients'}")
     if not (BIN / "dora").exists():
         print("bench_peer: dora-rs is not installed: .venv/bin/pip install -e '.[peer]'")
         return 2

@@ -31,6 +31,14 @@ shared memory for samples above 3 KiB (``transport_optimization``, a 16 MiB pool
 sending process) is off: ``zenoh: {transport/shared_memory/transport_optimization/enabled:
 true}`` in ``--bus-config`` turns it on for systems that send large buffers.
 
+Nodes as peers (``peer_nodes``, ``--peer-nodes``; off by default): the nodes of a host are
+Zenoh *peers* that connect to the host's router, learn of each other from it (gossip, one
+hop) and link to each other directly over loopback, as rmw_zenoh's nodes do; data between
+two nodes of a host then skips the router (a round trip in half the time, `tools/bench_peer.py`)
+while engines and tools stay clients. Nodes on other hosts are still reached through the
+routers. Refused on a bus with certificates: access control is enforced by each host's
+router, which direct links would bypass.
+
 A `BusConfig` is built from defaults, an optional YAML/JSON file (``--bus-config``) and CLI
 flags, in that order, and passed to child processes as JSON in ``RRA_BUS_CONFIG``.
 
@@ -77,6 +85,15 @@ KEEP_ALIVE = 8
 SECURE_PROTOCOLS = ("tls/", "quic/")
 #: Zenoh settings of a host's router only (its payload limits), not of its clients.
 ROUTER_ONLY = frozenset({"low_pass_filter", MAX_MESSAGE_SIZE})
+#: Where a node that is a peer (``peer_nodes``) listens for the other nodes of its host.
+PEER_LISTEN = "tcp/127.0.0.1:0"
+#: A peer learns of the other peers of its host's router from the router (one hop, never
+#: beyond it) and links to them and to routers.
+GOSSIP = {
+    "enabled": True,
+    "multihop": False,
+    "autoconnect": {"router": [], "peer": ["router", "peer"]},
+}
 
 
 def _split(endpoint: str) -> tuple[str, str, str]:
@@ -197,6 +214,8 @@ class BusConfig(FrozenModel, frozen=True):
     #: The largest data sample of the system (its largest port limit), set by the host
     #: agent from the model; None: the default (`rra_agent.bus.counters.MAX_PAYLOAD`).
     max_data_bytes: int | None = None
+    #: A host agent's nodes are Zenoh peers linked to each other directly (`for_nodes`).
+    peer_nodes: bool = False
 
     def __post_init__(self) -> None:
         if self.lease_ms < 100:
@@ -255,6 +274,23 @@ class BusConfig(FrozenModel, frozen=True):
             zenoh={k: v for k, v in self.zenoh.items() if k not in ROUTER_ONLY},
         )
 
+    def for_nodes(self) -> BusConfig:
+        """How the nodes of this (client) configuration's host join the bus: as clients of
+        its router, or with ``peer_nodes`` as peers that also listen on loopback for the
+        other nodes of the host (the router stays their way to everything else)."""
+        if not self.peer_nodes or self.mode != "client":
+            return self
+        return msgspec.structs.replace(self, mode="peer", listen=[PEER_LISTEN])
+
+    def check_peer_nodes(self) -> None:
+        """Refuse nodes as peers on a bus with certificates (the routers enforce its access
+        control; direct links between nodes would bypass it)."""
+        if self.peer_nodes and self.tls is not None:
+            raise RraError(
+                "--peer-nodes needs a bus without certificates: access control is enforced "
+                "by each host's router, which direct links between nodes would bypass"
+            )
+
     def exposed(self) -> list[str]:
         """Endpoints that reach beyond this host without TLS."""
         return [
@@ -287,6 +323,8 @@ class BusConfig(FrozenModel, frozen=True):
         # second, not every 4 s (Zenoh's default maximum): a host is back within ~1 s.
         c.insert_json5("connect/retry", json.dumps(RETRY))
         c.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast))
+        if self.mode == "peer":
+            c.insert_json5("scouting/gossip", json.dumps(GOSSIP))
         c.insert_json5("scouting/delay", "0")
         c.insert_json5("transport/link/tx/lease", json.dumps(self.lease_ms))
         c.insert_json5("transport/link/tx/keep_alive", json.dumps(KEEP_ALIVE))
@@ -360,6 +398,7 @@ class BusConfig(FrozenModel, frozen=True):
         multicast: bool | None = None,
         lease_ms: int | None = None,
         insecure: bool | None = None,
+        peer_nodes: bool | None = None,
     ) -> BusConfig:
         """This config with the given (non-None) fields replaced, as CLI flags do."""
         changes = {
@@ -370,6 +409,7 @@ class BusConfig(FrozenModel, frozen=True):
                 ("multicast", multicast),
                 ("lease_ms", lease_ms),
                 ("insecure", insecure),
+                ("peer_nodes", peer_nodes),
             )
             if v is not None
         }
@@ -495,6 +535,17 @@ def no_system(bus: BusConfig, *, reachable: bool | None = None) -> RraError:
     return RraError(f"no rra system answers at {where}; {START_HINT}")
 
 
+def add_peer_nodes_argument(group) -> None:  # an argparse group of a host agent's flags
+    """``--peer-nodes``, the flag of the commands that run a host agent."""
+    group.add_argument(
+        "--peer-nodes",
+        action="store_true",
+        default=None,
+        help="this host's nodes link to each other directly (Zenoh peers found through the "
+        "host's router, as rmw_zenoh's nodes); not with --certs",
+    )
+
+
 def add_bus_arguments(parser) -> None:  # argparse.ArgumentParser
     """The bus flags every rra process accepts."""
     g = parser.add_argument_group("bus")
@@ -541,11 +592,13 @@ def bus_from_args(args, role: str = "operator") -> BusConfig:  # argparse.Namesp
         multicast=args.multicast,
         lease_ms=args.lease_ms,
         insecure=getattr(args, "insecure", None),
+        peer_nodes=getattr(args, "peer_nodes", None),
     )
     certs = getattr(args, "certs", None)
     if not certs:
         return cfg
     cfg = cfg.with_identity(certs, role)
+    cfg.check_peer_nodes()
     connect = [TLS_HUB if ep == DEFAULT_HUB else ep for ep in cfg.connect]
     listen = [TLS_HUB if ep == DEFAULT_HUB else ep for ep in cfg.listen]
     if role == "agent" and not listen and getattr(args, "hub", True) is False:

@@ -28,6 +28,7 @@ from rra_agent.bus.config import (
     TLS_HUB,
     BusConfig,
     add_bus_arguments,
+    add_peer_nodes_argument,
     bus_from_args,
     loopback_form,
 )
@@ -101,6 +102,7 @@ def configure(p: argparse.ArgumentParser) -> None:
         "viewer), `off` (the default); put it after PKG",
     )
     add_bus_arguments(p)
+    add_peer_nodes_argument(p)
 
 
 def engine_specs(

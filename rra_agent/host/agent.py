@@ -142,7 +142,7 @@ class HostAgent:
         self.local.env_for = self._child_env
         # Without certificates every node has this host's bus configuration: spares open
         # their sessions ahead (with them, a node's identity is its own, known at its start).
-        self.local.spare_bus = self.bus if certs is None else None
+        self.local.spare_bus = self.bus.for_nodes() if certs is None else None
         self.clock = clock
         self.supervisor = Supervisor(
             stop=stop, listener=self._on_transition, notices=self._on_notice
@@ -180,7 +180,7 @@ class HostAgent:
         """A child's bus identity: the engine or node certificate of this host, and for a
         node its fixed Zenoh id (the access control names both)."""
         if self.certs is None:
-            return self.bus
+            return self.bus if spec.name in self.catalog.builtins else self.bus.for_nodes()
         if spec.name in self.catalog.builtins:
             return self.bus.with_identity(self.certs, "engine")
         cfg = self.bus.with_identity(self.certs, "node")
@@ -931,7 +931,7 @@ def state_printer(
 
 
 def configure(parser) -> None:  # argparse.ArgumentParser
-    from rra_agent.bus.config import add_bus_arguments
+    from rra_agent.bus.config import add_bus_arguments, add_peer_nodes_argument
 
     parser.add_argument("--system", help="system name (checked against the package's)")
     parser.add_argument("--host", required=True, help="this host's name in the system model")
@@ -959,6 +959,7 @@ def configure(parser) -> None:  # argparse.ArgumentParser
         "--hub", action="store_true", help="listen on the hub endpoint (the first process)"
     )
     add_bus_arguments(parser)
+    add_peer_nodes_argument(parser)
 
 
 def schedule_self(settings: AgentSettings, who: str) -> None:

@@ -23,7 +23,7 @@ from test_failures import stall
 
 from rra_agent.bus import messages as m
 from rra_agent.bus.client import wait_until
-from rra_agent.bus.config import PEER_LISTEN, BusConfig, Tls
+from rra_agent.bus.config import PEER_LISTEN, ROUTER_ONLY, BusConfig, Tls
 from rra_agent.bus.session import open_session
 from rra_agent.errors import RraError
 from rra_agent.models.system import Command
@@ -82,6 +82,44 @@ def test_as_clients_of_the_router_nodes_get_nothing_while_it_is_stopped(system, 
     assert inside(stamps, window) == [], (window, stamps)
 
 
+def test_a_peer_node_drops_an_oversized_sample_it_gets_directly_before_python_sees_it(
+    system, bus
+):
+    """A peer of the host (this test's session, linked to the nodes like one of them) puts
+    2 MiB on source.out, then a marker sample on the same link: ``direct`` relays the marker,
+    and its own counters never saw the big one, because its Zenoh session dropped it with
+    the router's limits (without them it reached Python, which counted it dropped)."""
+    sys_ = system(RELAY, "--peer-nodes")
+    as_peer = BusConfig(connect=bus.connect, multicast=False, peer_nodes=True).for_nodes()
+    peer = open_session(as_peer)
+    relayed: list[int] = []
+
+    def on(sample) -> None:
+        with contextlib.suppress(msgspec.DecodeError):
+            data = msgspec.msgpack.decode(sample.payload.to_bytes())
+            if isinstance(data, dict) and data.get("relay") == "direct":
+                relayed.append(data.get("seq"))
+
+    sub = peer.declare_subscriber(K.data("direct/out"), on)
+    pub = peer.declare_publisher(K.data("source/out"))
+    try:
+        wait_until(lambda: relayed, 20, "direct relaying the source's ticks")
+        marker = 10**9
+
+        def marked() -> bool:
+            pub.put(b"\x80" * (2 * 1024 * 1024))
+            pub.put(msgspec.msgpack.encode({"seq": marker, "value": 1.0}))
+            return marker in relayed
+
+        wait_until(marked, 20, "the marker relayed by direct", interval=0.5)
+    finally:
+        pub.undeclare()
+        sub.undeclare()
+        peer.close()
+    stats = sys_.gather()["stats"]["node:direct"]
+    assert stats.get("dropped", 0) == 0, stats  # a zero count is left out
+
+
 # ---- the configuration ---------------------------------------------------------------------
 def test_nodes_are_peers_listening_on_loopback_and_everything_else_stays_a_client():
     bus = BusConfig(peer_nodes=True).host_router(hub=True).local_client()
@@ -118,6 +156,14 @@ def test_the_host_agent_makes_its_nodes_peers_and_its_engines_clients(tmp_path):
     agent = HostAgent(dep.system, "local", bus, tmp_path, hub=True, catalog=catalog)
     node = m.NodeSpec(system=dep.system, name="sink", host="local",
                       implementation="rra_agent.nodes.generic.Relay")  # fmt: skip
-    assert agent._child_bus(node).mode == "peer"
+    nodes = agent._child_bus(node)
+    assert nodes.mode == "peer"
     assert agent._child_bus(engine).mode == "client"
-    assert agent.local.spare_bus is not None and agent.local.spare_bus.mode == "peer"
+    assert agent.local.spare_bus == nodes  # the spares open their sessions ahead as peers
+    # a peer applies its router's payload limits itself: what it gets from another node
+    # directly never crosses the router
+    router = agent.session_bus.zenoh
+    for key in ROUTER_ONLY:
+        assert nodes.zenoh[key] == router[key], key
+    assert ROUTER_ONLY.isdisjoint(agent._child_bus(engine).zenoh)
+    nodes.to_zenoh()  # Zenoh takes the limits in a peer's configuration

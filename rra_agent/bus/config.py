@@ -274,13 +274,18 @@ class BusConfig(FrozenModel, frozen=True):
             zenoh={k: v for k, v in self.zenoh.items() if k not in ROUTER_ONLY},
         )
 
-    def for_nodes(self) -> BusConfig:
+    def for_nodes(self, router: Mapping[str, Any] | None = None) -> BusConfig:
         """How the nodes of this (client) configuration's host join the bus: as clients of
         its router, or with ``peer_nodes`` as peers that also listen on loopback for the
-        other nodes of the host (the router stays their way to everything else)."""
+        other nodes of the host (the router stays their way to everything else). A peer
+        applies the payload limits of ``router`` (its host router's Zenoh settings) on its
+        own links: what two nodes exchange directly never meets the router's."""
         if not self.peer_nodes or self.mode != "client":
             return self
-        return msgspec.structs.replace(self, mode="peer", listen=[PEER_LISTEN])
+        limits = {k: v for k, v in (router or {}).items() if k in ROUTER_ONLY}
+        return msgspec.structs.replace(
+            self, mode="peer", listen=[PEER_LISTEN], zenoh={**limits, **self.zenoh}
+        )
 
     def check_peer_nodes(self) -> None:
         """Refuse nodes as peers on a bus with certificates (the routers enforce its access

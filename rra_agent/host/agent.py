@@ -119,6 +119,9 @@ class HostAgent:
         #: it drops what is over its key family's or data topic's limit (``data_topics``).
         router = bus.host_router(hub=hub, system=system, topics=data_topics)
         self.bus = router.local_client()
+        #: How this host's nodes join the bus (as peers, they apply the router's limits on
+        #: their own links too: what they exchange directly never crosses the router).
+        self.node_bus = self.bus.for_nodes(router.zenoh)
         if access_control is not None:
             router = msgspec.structs.replace(
                 router, zenoh={**router.zenoh, "access_control": access_control}
@@ -142,7 +145,7 @@ class HostAgent:
         self.local.env_for = self._child_env
         # Without certificates every node has this host's bus configuration: spares open
         # their sessions ahead (with them, a node's identity is its own, known at its start).
-        self.local.spare_bus = self.bus.for_nodes() if certs is None else None
+        self.local.spare_bus = self.node_bus if certs is None else None
         self.clock = clock
         self.supervisor = Supervisor(
             stop=stop, listener=self._on_transition, notices=self._on_notice
@@ -180,7 +183,7 @@ class HostAgent:
         """A child's bus identity: the engine or node certificate of this host, and for a
         node its fixed Zenoh id (the access control names both)."""
         if self.certs is None:
-            return self.bus if spec.name in self.catalog.builtins else self.bus.for_nodes()
+            return self.bus if spec.name in self.catalog.builtins else self.node_bus
         if spec.name in self.catalog.builtins:
             return self.bus.with_identity(self.certs, "engine")
         cfg = self.bus.with_identity(self.certs, "node")

@@ -217,7 +217,7 @@ def certificates(net: Network, pkg: Path, tmp_path: Path) -> Path:
 
 def start_system(
     net: Network, pkg: Path, tmp_path: Path, others: list[str], *up_args: str,
-    certs: Path | None = None,
+    certs: Path | None = None, agent_args: tuple[str, ...] = (),
 ):  # fmt: skip
     """``rra up`` in A, ``rra agent`` in every other host; (up, {host: agent}). With
     ``certs``: mutual TLS on every link and the model's access control on every router."""
@@ -230,7 +230,7 @@ def start_system(
     agents = {
         h: net.python(h, "-m", "rra_agent", "agent", "--system", SYSTEM, "--host", h,
                       "--package", str(pkg), "--connect", f"{proto}/{a}:{PORT}",
-                      "--listen", f"{proto}/127.0.0.1:{PORT}", *secure(h),
+                      "--listen", f"{proto}/127.0.0.1:{PORT}", *secure(h), *agent_args,
                       "--log-dir", str(tmp_path / f"{h}-logs"), name=f"agent-{h}")
         for h in others
     }  # fmt: skip
@@ -419,6 +419,34 @@ def test_two_hosts_each_runs_its_nodes_and_a_swap_happens_on_b(network, tmp_path
     }
     assert set(cli["engine"]["running"]) == {"source", "filtered", "sink"}
     stop_all(net, up, agents, rra)
+
+
+def test_peer_nodes_link_to_each_other_on_their_host_and_reach_other_hosts_via_routers(
+    network, tmp_path
+):
+    """``--peer-nodes`` on both hosts: B's nodes link to B's router and directly to each
+    other, all on loopback, never to A; A's source still reaches B's sink through the two
+    routers, and a swap on B rewires B's sink."""
+    net = network("A", "B")
+    pkg = placed(tmp_path, {"direct": "B", "filtered": "B", "sink": "B"})
+    up, agents = start_system(net, pkg, tmp_path, ["B"], "--peer-nodes",
+                              agent_args=("--peer-nodes",))  # fmt: skip
+    rra, on_b = Rra(net, "A"), Rra(net, "B")
+    st = rra.wait(deployed, "the deployment")
+    got = on_b.call("samples", "sink/out", "1")  # A's source -> B's direct -> B's sink
+    assert got["relay"] == "sink"
+    for name in ("direct", "sink"):
+        n = node(st, name)
+        links = tcp_peers(n["pid"], net.ns("B"))
+        assert LOCAL_ROUTER in links, (name, links)
+        assert {addr for addr, _ in links} == {"127.0.0.1"}, (name, links)  # never to A
+        assert len(links) >= 2, (name, links)  # and to the other node of B, directly
+    rra.param("source", "value=7")
+    rra.wait(lambda s: "filtered" in running(s) and node(s, "filtered").get("state") == "RUNNING"
+             and node(s, "direct").get("state") == "STOPPED", "the swap on B")  # fmt: skip
+    got = on_b.call("samples", "sink/out", "114")  # 7 + 100 (filtered) + 7 (the CV Gain)
+    assert got["relay"] == "sink" and got["value"] >= 114
+    stop_all(net, up, agents, rra, on_b)
 
 
 def test_round_trip_on_b_stays_local_when_the_link_to_a_is_slow(network, tmp_path):

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import pytest
+import zenoh
 from test_hot_standby import ACTIVE, HOT, FakeSession, Sink, sample, sim_spec
 
 from rra_agent.bus import messages as m
@@ -94,3 +96,20 @@ def test_a_spare_rehearses_a_start_and_leaves_nothing_declared():
     assert kinds == ["publisher", "queryable", "subscriber", "token"]
     assert all(" rra/_spare/4242/" in x for x in session.seen)
     assert session.live == []
+
+
+@pytest.mark.system
+def test_a_sample_delivered_while_the_session_closes_is_no_fault_of_the_node():
+    """At a node's stop its session closes while a bus callback may still be in the node's
+    code: what it publishes then has nowhere to go (the full suite once logged that as a
+    traceback of ``on_message``: ``zenoh.ZError: session closed``). A publish on a port it
+    does not have still raises."""
+
+    session = zenoh.open(BusConfig(mode="peer", connect=[], multicast=False).to_zenoh())
+    transport = ZenohTransport(session)
+    transport.rebind("out", "publish", ["rra/t/data/n/out"])
+    transport.publish("out", b"\x80", 1.0)  # open: sent
+    session.close()
+    transport.publish("out", b"\x80", 2.0)  # closed under it: dropped, not raised
+    with pytest.raises(KeyError):
+        transport.publish("nope", b"\x80", 3.0)

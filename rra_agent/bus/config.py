@@ -83,7 +83,8 @@ SHM_OPTIMIZATION = "transport/shared_memory/transport_optimization/enabled"
 KEEP_ALIVE = 8
 #: Link protocols that authenticate and encrypt.
 SECURE_PROTOCOLS = ("tls/", "quic/")
-#: Zenoh settings of a host's router only (its payload limits), not of its clients.
+#: Zenoh settings of a host's router (its payload limits), not of its clients; a node that
+#: is a peer applies them too (`BusConfig.for_nodes`).
 ROUTER_ONLY = frozenset({"low_pass_filter", MAX_MESSAGE_SIZE})
 #: Where a node that is a peer (``peer_nodes``) listens for the other nodes of its host.
 PEER_LISTEN = "tcp/127.0.0.1:0"

@@ -181,7 +181,8 @@ class HostAgent:
 
     def _child_bus(self, spec: m.NodeSpec) -> BusConfig:
         """A child's bus identity: the engine or node certificate of this host, and for a
-        node its fixed Zenoh id (the access control names both)."""
+        node its fixed Zenoh id (the access control names both); without certificates, a
+        node's is `node_bus` (a peer with ``--peer-nodes``)."""
         if self.certs is None:
             return self.bus if spec.name in self.catalog.builtins else self.node_bus
         if spec.name in self.catalog.builtins:

@@ -191,7 +191,12 @@ class ZenohTransport:
             return True
 
     def publish(self, port: str, payload: bytes, stamp: float) -> None:
-        self.publishers[port].put(payload, attachment=_STAMP.pack(stamp))
+        try:
+            self.publishers[port].put(payload, attachment=_STAMP.pack(stamp))
+        except zenoh.ZError:
+            if self.session.is_closed():  # the node is stopping: a sample that was being
+                return  # delivered as its session closed has nowhere to go, and no fault
+            raise
 
     def rebind(
         self, port: str, direction: str, keys: list[str], standby: list[str] | None = None

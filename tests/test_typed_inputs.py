@@ -280,3 +280,10 @@ def test_a_flood_of_one_source_s_junk_never_hides_another_source_s_first_refusal
     now[0] = 11.0
     log("dropped (malformed)", "process request: junk", "request")
     assert lines[-1] == "dropped (malformed): process request: junk (100 since the last report)"
+
+
+def test_a_sample_over_the_size_limit_is_dropped_and_counted_as_too_large():
+    h = harness()
+    h.send_raw("in", b"\x80" * (h.core.max_data + 1))
+    assert h.node.got == [] and h.core.counters.dropped == 1
+    assert h.core.counters.extra["too_large"] == 1

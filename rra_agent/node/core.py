@@ -215,7 +215,7 @@ class NodeCore:
         and the lock is taken without ``with`` (half the cost).
         """
         if len(payload) > self.max_data:
-            self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
+            self._too_large(port, len(payload))
             return
         decoder = self._decoders.get(port)
         if decoder is None:
@@ -270,7 +270,7 @@ class NodeCore:
     def _valid(self, port: str, payload: bytes) -> bool:
         """Whether ``payload`` is a data sample `deliver` would accept (else refused, counted)."""
         if len(payload) > self.max_data:
-            self._drop(port, f"{len(payload)} bytes, more than the {self.max_data} allowed")
+            self._too_large(port, len(payload))
             return False
         decoder = self._decoders.get(port)
         if decoder is None:
@@ -288,6 +288,10 @@ class NodeCore:
             held = self._held.pop((port, key), None)
             if held is not None and self.monotonic() - held[2] <= REPLAY_MAX_AGE:
                 self.deliver(port, held[0], held[1])
+
+    def _too_large(self, port: str, size: int) -> None:
+        why = f"{size} bytes, more than the {self.max_data} allowed"
+        self._refuse_sample(port, Refusal(port, "too_large", why))
 
     def _drop(self, port: str, why: str) -> None:
         with self.lock:

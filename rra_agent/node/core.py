@@ -302,14 +302,17 @@ class NodeCore:
         """A sample `deliver` does not hand to the node: one that is not even a msgpack map
         is dropped, one of another type or with a non-finite number is rejected; both are
         counted per reason (``wrong_type``, ``non_finite``...) and logged, rate-limited."""
-        if refusal.reason in MALFORMED:
-            self._drop(port, refusal.detail)
-        else:
-            with self.lock:
-                self.counters.rejected += 1
-            self._refusals(f"refused sample on {port}", refusal.detail, refusal.reason)
+        malformed = refusal.reason in MALFORMED
         with self.lock:
             self.counters.bump(refusal.reason)
+            if malformed:
+                self.counters.dropped += 1
+            else:
+                self.counters.rejected += 1
+        if malformed:
+            self._refusals(f"dropped sample on {port}", refusal.detail)
+        else:
+            self._refusals(f"refused sample on {port}", refusal.detail, refusal.reason)
 
     @property
     def received(self) -> int:
